@@ -1,0 +1,390 @@
+"""Configuration: frozen dataclasses, named presets, validated once at construction.
+
+Presets:
+  * ``Config.paper()``: the paper's network (DESIGN sections 5-8), 0.02 m cells, 500 x 500.
+  * ``Config.small()``: trainable on a 2-core CPU, 0.1 m cells, 100 x 100.
+  * ``Config.tiny()``: for tests, 0.25 m cells, 40 x 40, a few thousand parameters.
+
+Change a field with ``dataclasses.replace`` (validation runs again)::
+
+    cfg = Config.small()
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, learning_rate=1e-4))
+
+Structural values (grid, widths, depths) are static; values a sweep varies (learning rate,
+loss weights) are read from here once and passed into jitted steps as arrays.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from typing import Any
+
+CLASS_NAMES: tuple[str, ...] = (
+    "Table", "Chair", "Sofa", "Shelf", "Cabinet", "Box", "Person", "Robot", "Misc",
+)  # fmt: skip
+NUM_CLASSES = len(CLASS_NAMES)  # background is index NUM_CLASSES
+DYNAMIC_CLASSES: tuple[str, ...] = ("Person", "Robot")
+
+
+class ConfigError(ValueError):
+    """A configuration field holds a value that cannot work; the message names the field."""
+
+
+def _fail(field: str, message: str) -> None:
+    raise ConfigError(f"config field '{field}': {message}")
+
+
+def _check_range(field: str, value: tuple[float, float]) -> None:
+    if len(value) != 2 or not value[0] < value[1]:
+        _fail(field, f"expected (min, max) with min < max, got {value!r}")
+
+
+def _check_positive(field: str, value: float) -> None:
+    if not value > 0:
+        _fail(field, f"must be > 0, got {value!r}")
+
+
+def _check_len(field: str, value: tuple, n: int) -> None:
+    if len(value) != n:
+        _fail(field, f"expected {n} entries, got {len(value)}: {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class GridConfig:
+    """The BEV grid in the lidar frame (DESIGN section 2).
+
+    Row i grows with y, column j with x; the centre of cell (i, j) is
+    ``(x_range[0] + (j + 0.5) * cell_size, y_range[0] + (i + 0.5) * cell_size)``.
+    """
+
+    x_range: tuple[float, float] = (-5.0, 5.0)
+    y_range: tuple[float, float] = (-5.0, 5.0)
+    z_range: tuple[float, float] = (-3.0, 3.0)
+    cell_size: float = 0.02
+
+    def __post_init__(self):
+        _check_positive("grid.cell_size", self.cell_size)
+        for name in ("x_range", "y_range", "z_range"):
+            _check_range(f"grid.{name}", getattr(self, name))
+        for name in ("x_range", "y_range"):
+            lo, hi = getattr(self, name)
+            cells = (hi - lo) / self.cell_size
+            if abs(cells - round(cells)) > 1e-6:
+                _fail(
+                    f"grid.{name}",
+                    f"extent {hi - lo} m is not divisible by cell_size {self.cell_size} m "
+                    f"({cells:.4f} cells)",
+                )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W): rows along y, columns along x."""
+        h = round((self.y_range[1] - self.y_range[0]) / self.cell_size)
+        w = round((self.x_range[1] - self.x_range[0]) / self.cell_size)
+        return h, w
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """Point and target padding, classes (DESIGN sections 3-4)."""
+
+    max_points: int = 24576
+    # Targets are padded to this length (N_q in DESIGN section 3); must not exceed the
+    # number of queries so that every target can be matched.
+    max_objects: int = 30
+    class_names: tuple[str, ...] = CLASS_NAMES
+    # Extra label names accepted on read, as (name in file, canonical class name) pairs.
+    class_map: tuple[tuple[str, str], ...] = ()
+
+    def __post_init__(self):
+        _check_positive("data.max_points", self.max_points)
+        _check_positive("data.max_objects", self.max_objects)
+        if len(set(self.class_names)) != len(self.class_names):
+            _fail("data.class_names", f"names must be unique, got {self.class_names!r}")
+        for src, dst in self.class_map:
+            if dst not in self.class_names:
+                _fail("data.class_map", f"'{src}' maps to unknown class '{dst}'")
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.class_names)
+
+    def class_index(self, name: str) -> int:
+        """Index of a class name (after ``class_map``); raises KeyError when unknown."""
+        canonical = dict(self.class_map).get(name, name)
+        if canonical not in self.class_names:
+            raise KeyError(name)
+        return self.class_names.index(canonical)
+
+
+@dataclasses.dataclass(frozen=True)
+class EncoderConfig:
+    """AF-PCCN (DESIGN section 5)."""
+
+    channels: int = 64  # C_enc, features per BEV cell
+
+    def __post_init__(self):
+        _check_positive("encoder.channels", self.channels)
+        if self.channels % 2:
+            _fail("encoder.channels", f"must be even (two branches of C/2), got {self.channels}")
+
+
+@dataclasses.dataclass(frozen=True)
+class BackboneConfig:
+    """Swin backbone (DESIGN section 6)."""
+
+    embed_dims: tuple[int, ...] = (64, 128, 256, 512)
+    depths: tuple[int, ...] = (1, 1, 1, 1)
+    num_heads: tuple[int, ...] = (2, 4, 8, 8)
+    strides: tuple[int, ...] = (1, 2, 2, 2)
+    # Per stage: whether its blocks start with a shifted window (SW-MSA). With one block
+    # per stage, stages 2 and 4 shift so both W-MSA and SW-MSA occur.
+    shifted: tuple[bool, ...] = (False, True, False, True)
+    window_size: int = 7
+    mlp_ratio: float = 2.0
+    out_indices: tuple[int, ...] = (0, 1, 2, 3)
+    remat: bool = False
+
+    def __post_init__(self):
+        n = len(self.embed_dims)
+        for name in ("depths", "num_heads", "strides", "shifted"):
+            _check_len(f"backbone.{name}", getattr(self, name), n)
+        for k, (dim, heads) in enumerate(zip(self.embed_dims, self.num_heads, strict=True)):
+            if heads <= 0 or dim % heads:
+                _fail(f"backbone.num_heads[{k}]", f"{heads} heads do not divide width {dim}")
+        for k, s in enumerate(self.strides):
+            if s not in (1, 2):
+                _fail(f"backbone.strides[{k}]", f"must be 1 or 2, got {s}")
+        _check_positive("backbone.window_size", self.window_size)
+        _check_positive("backbone.mlp_ratio", self.mlp_ratio)
+        for k in self.out_indices:
+            if not 0 <= k < n:
+                _fail("backbone.out_indices", f"index {k} outside 0..{n - 1}")
+
+    @property
+    def shift_size(self) -> int:
+        return self.window_size // 2
+
+    @property
+    def total_stride(self) -> int:
+        return math.prod(self.strides)
+
+    @property
+    def pad_multiple(self) -> int:
+        """The grid is padded once to this multiple so every stage tiles into windows."""
+        return self.window_size * self.total_stride
+
+
+@dataclasses.dataclass(frozen=True)
+class HeadConfig:
+    """Upsampler and query mask head (DESIGN section 7)."""
+
+    hidden_dim: int = 64  # C_hid
+    num_queries: int = 30
+    num_layers: int = 4
+    num_heads: int = 8
+    ffn_dim: int = 256
+    # FPN-style skips from earlier stages into the upsampler (paper mode: False).
+    upsampler_skips: bool = False
+    # Cross-attention memory stride: 1 attends to the full H x W memory (paper); s > 1
+    # attends to an s x s average-pooled memory while masks stay at full resolution.
+    memory_stride: int = 1
+
+    def __post_init__(self):
+        for name in ("hidden_dim", "num_queries", "num_layers", "ffn_dim", "memory_stride"):
+            _check_positive(f"head.{name}", getattr(self, name))
+        if self.num_heads <= 0 or self.hidden_dim % self.num_heads:
+            _fail(
+                "head.num_heads",
+                f"{self.num_heads} heads do not divide hidden_dim {self.hidden_dim}",
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class LossConfig:
+    """Matching costs and loss weights (DESIGN section 8)."""
+
+    # Loss weights.
+    cls_weight: float = 2.0
+    dice_weight: float = 5.0
+    focal_weight: float = 2.0
+    dims_weight: float = 0.1
+    pos_weight: float = 0.1
+    yaw_weight: float = 0.1
+    background_weight: float = 0.1
+    # Matching cost weights.
+    cost_cls: float = 2.0
+    cost_dice: float = 5.0
+    cost_focal: float = 2.0
+    cost_reg: float = 0.1
+    focal_alpha: float = 0.25
+    focal_gamma: float = 2.0
+    # Sampled mask points per query for costs and mask losses; 0 = every cell.
+    num_mask_points: int = 0
+    aux_loss: bool = True
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, float) and (v < 0 or not math.isfinite(v)):
+                _fail(f"loss.{f.name}", f"must be finite and >= 0, got {v!r}")
+        if self.num_mask_points < 0:
+            _fail("loss.num_mask_points", f"must be >= 0, got {self.num_mask_points}")
+
+    def weights(self) -> dict[str, float]:
+        """Loss weights as a flat dict, the form ``losses.set_loss`` takes (arrays allowed)."""
+        return {
+            "cls": self.cls_weight,
+            "dice": self.dice_weight,
+            "focal": self.focal_weight,
+            "dims": self.dims_weight,
+            "pos": self.pos_weight,
+            "yaw": self.yaw_weight,
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class InferenceConfig:
+    """Panoptic inference thresholds (DESIGN section 9)."""
+
+    score_threshold: float = 0.8
+    mask_threshold: float = 0.5
+    overlap_threshold: float = 0.8
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not 0.0 <= v <= 1.0:
+                _fail(f"inference.{f.name}", f"must lie in [0, 1], got {v!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Optimiser, schedule and run control (paper "Implementation Details")."""
+
+    batch_size: int = 4
+    learning_rate: float = 5e-5
+    weight_decay: float = 1e-4
+    warmup_steps: int = 500
+    total_steps: int = 50_000
+    grad_clip_norm: float = 1.0
+    bfloat16: bool = False
+    seed: int = 0
+    log_every: int = 50
+    eval_every: int = 1000
+    checkpoint_every: int = 1000
+    keep_checkpoints: int = 3
+
+    def __post_init__(self):
+        for name in ("batch_size", "total_steps", "log_every", "eval_every",
+                     "checkpoint_every", "keep_checkpoints"):  # fmt: skip
+            _check_positive(f"train.{name}", getattr(self, name))
+        for name in ("learning_rate", "weight_decay", "grad_clip_norm"):
+            v = getattr(self, name)
+            if v < 0 or not math.isfinite(v):
+                _fail(f"train.{name}", f"must be finite and >= 0, got {v!r}")
+        if not 0 <= self.warmup_steps <= self.total_steps:
+            _fail("train.warmup_steps", f"must lie in [0, total_steps], got {self.warmup_steps}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Everything a run needs; see the module docstring for the presets."""
+
+    name: str = "paper"
+    grid: GridConfig = GridConfig()
+    data: DataConfig = DataConfig()
+    encoder: EncoderConfig = EncoderConfig()
+    backbone: BackboneConfig = BackboneConfig()
+    head: HeadConfig = HeadConfig()
+    loss: LossConfig = LossConfig()
+    inference: InferenceConfig = InferenceConfig()
+    train: TrainConfig = TrainConfig()
+
+    def __post_init__(self):
+        if self.data.max_objects > self.head.num_queries:
+            _fail(
+                "data.max_objects",
+                f"{self.data.max_objects} targets cannot all be matched to "
+                f"{self.head.num_queries} queries (head.num_queries)",
+            )
+        if self.data.num_classes != len(CLASS_NAMES):
+            _fail("data.class_names", f"the network has {len(CLASS_NAMES)} classes")
+
+    @property
+    def num_classes(self) -> int:
+        return self.data.num_classes
+
+    @classmethod
+    def paper(cls) -> Config:
+        return cls()
+
+    @classmethod
+    def small(cls) -> Config:
+        return cls(
+            name="small",
+            grid=GridConfig(cell_size=0.1),
+            encoder=EncoderConfig(channels=32),
+            backbone=BackboneConfig(
+                embed_dims=(32, 64, 128, 256), num_heads=(1, 2, 4, 8), strides=(2, 2, 2, 2)
+            ),
+            head=HeadConfig(hidden_dim=32, num_heads=4, ffn_dim=128),
+            train=TrainConfig(learning_rate=2e-4, warmup_steps=200, total_steps=20_000),
+        )
+
+    @classmethod
+    def tiny(cls) -> Config:
+        return cls(
+            name="tiny",
+            grid=GridConfig(cell_size=0.25),
+            data=DataConfig(max_points=2048, max_objects=8),
+            encoder=EncoderConfig(channels=16),
+            backbone=BackboneConfig(
+                embed_dims=(16, 32, 32, 64), num_heads=(1, 2, 2, 4), window_size=3
+            ),
+            head=HeadConfig(hidden_dim=16, num_queries=8, num_layers=2, num_heads=2, ffn_dim=32),
+            train=TrainConfig(
+                batch_size=2, learning_rate=1e-3, warmup_steps=2, total_steps=20,
+                log_every=5, eval_every=10, checkpoint_every=5, keep_checkpoints=2,
+            ),  # fmt: skip
+        )
+
+    @classmethod
+    def preset(cls, name: str) -> Config:
+        presets = {"paper": cls.paper, "small": cls.small, "tiny": cls.tiny}
+        if name not in presets:
+            raise ConfigError(f"unknown preset '{name}', expected one of {sorted(presets)}")
+        return presets[name]()
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Config:
+        """Inverse of ``to_dict`` (lists become tuples); unknown keys are an error."""
+        return _from_dict(cls, d, "")
+
+
+def _from_dict(kind, d: dict[str, Any], prefix: str):
+    fields = {f.name: f for f in dataclasses.fields(kind)}
+    unknown = set(d) - set(fields)
+    if unknown:
+        raise ConfigError(f"unknown config field(s) {sorted(prefix + k for k in unknown)}")
+    kwargs = {}
+    for name, value in d.items():
+        default = getattr(kind(), name)
+        if dataclasses.is_dataclass(default):
+            value = _from_dict(type(default), value, f"{prefix}{name}.")
+        elif isinstance(value, list):
+            value = _to_tuple(value)
+        kwargs[name] = value
+    return kind(**kwargs)
+
+
+def _to_tuple(value):
+    return tuple(_to_tuple(v) if isinstance(v, list) else v for v in value)

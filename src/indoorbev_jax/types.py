@@ -1,0 +1,75 @@
+"""Array containers shared by every stage, and the glossary of axis letters.
+
+Axis letters used in shape comments and docstrings:
+  B  frames in a batch             N  points per frame (padded to ``data.max_points``)
+  H  BEV rows (along y)            W  BEV columns (along x)
+  C  channels                      Q  queries (``head.num_queries``)
+  M  targets per frame (padded to ``data.max_objects``)
+  L  decoder layers                K  classes + background (``num_classes + 1``)
+  R  rays                          T  frames in a sequence
+
+Boxes (DESIGN sections 2-3), all in the lidar frame (x forward, y left, z up, metres):
+  pos   box centre (x, y, z), the geometric centre, not KITTI's bottom centre;
+  dims  (length, width, height), length along the heading;
+  yaw   heading angle about +z from +x, in radians.
+"""
+
+from __future__ import annotations
+
+import jax
+from flax import struct
+
+
+@struct.dataclass
+class Targets:
+    """Ground truth of B frames, padded to M objects.
+
+    Attributes:
+      classes: int32 [B, M], class index in 0..num_classes-1 (padding: num_classes).
+      dims: float32 [B, M, 3], (length, width, height).
+      pos: float32 [B, M, 3], box centre.
+      yaw: float32 [B, M].
+      valid: bool [B, M], which slots hold an object.
+      masks: bool [B, M, H, W], each object's footprint (overlaps allowed).
+      instance_ids: int32 [B, H, W], 0 = empty, k + 1 = object k (the panoptic map).
+    """
+
+    classes: jax.Array
+    dims: jax.Array
+    pos: jax.Array
+    yaw: jax.Array
+    valid: jax.Array
+    masks: jax.Array
+    instance_ids: jax.Array
+
+
+@struct.dataclass
+class Batch:
+    """Model inputs plus targets: what a data source yields and the train step consumes.
+
+    Attributes:
+      points: float32 [B, N, 4], (x, y, z, intensity) in the lidar frame.
+      point_valid: bool [B, N].
+      targets: ``Targets`` of the same B frames.
+    """
+
+    points: jax.Array
+    point_valid: jax.Array
+    targets: Targets
+
+
+@struct.dataclass
+class Predictions:
+    """Raw network outputs for every decoder layer (the last layer is the final one).
+
+    Attributes:
+      logits: [L, B, Q, K] class logits, index num_classes = background.
+      dims: [L, B, Q, 3]; pos: [L, B, Q, 3]; yaw: [L, B, Q, 1].
+      masks: [L, B, Q, H, W] mask logits on the unpadded grid.
+    """
+
+    logits: jax.Array
+    dims: jax.Array
+    pos: jax.Array
+    yaw: jax.Array
+    masks: jax.Array
