@@ -22,8 +22,16 @@ import math
 from typing import Any
 
 CLASS_NAMES: tuple[str, ...] = (
-    "Table", "Chair", "Sofa", "Shelf", "Cabinet", "Box", "Person", "Robot", "Misc",
-)  # fmt: skip
+    "Table",
+    "Chair",
+    "Sofa",
+    "Shelf",
+    "Cabinet",
+    "Box",
+    "Person",
+    "Robot",
+    "Misc",
+)
 NUM_CLASSES = len(CLASS_NAMES)  # background is index NUM_CLASSES
 DYNAMIC_CLASSES: tuple[str, ...] = ("Person", "Robot")
 
@@ -191,6 +199,9 @@ class HeadConfig:
     # Cross-attention memory stride: 1 attends to the full H x W memory (paper); s > 1
     # attends to an s x s average-pooled memory while masks stay at full resolution.
     memory_stride: int = 1
+    # Recompute each decoder layer's cross-attention in the backward pass (jax.checkpoint):
+    # its scores over the H x W memory set the training memory peak.
+    remat: bool = False
 
     def __post_init__(self):
         for name in ("hidden_dim", "num_queries", "num_layers", "ffn_dim", "memory_stride"):
@@ -278,8 +289,14 @@ class TrainConfig:
     keep_checkpoints: int = 3
 
     def __post_init__(self):
-        for name in ("batch_size", "total_steps", "log_every", "eval_every",
-                     "checkpoint_every", "keep_checkpoints"):  # fmt: skip
+        for name in (
+            "batch_size",
+            "total_steps",
+            "log_every",
+            "eval_every",
+            "checkpoint_every",
+            "keep_checkpoints",
+        ):
             _check_positive(f"train.{name}", getattr(self, name))
         for name in ("learning_rate", "weight_decay", "grad_clip_norm"):
             v = getattr(self, name)
@@ -346,9 +363,15 @@ class Config:
             ),
             head=HeadConfig(hidden_dim=16, num_queries=8, num_layers=2, num_heads=2, ffn_dim=32),
             train=TrainConfig(
-                batch_size=2, learning_rate=1e-3, warmup_steps=2, total_steps=20,
-                log_every=5, eval_every=10, checkpoint_every=5, keep_checkpoints=2,
-            ),  # fmt: skip
+                batch_size=2,
+                learning_rate=1e-3,
+                warmup_steps=2,
+                total_steps=20,
+                log_every=5,
+                eval_every=10,
+                checkpoint_every=5,
+                keep_checkpoints=2,
+            ),
         )
 
     @classmethod

@@ -1,0 +1,295 @@
+"""KITTI-style dataset files (DESIGN section 3).
+
+Layout::
+
+    <root>/<split>.txt           frame ids, one a line
+    <root>/velodyne/<id>.bin     float32 N x 4 (x, y, z, intensity), lidar frame
+    <root>/label_2/<id>.txt      KITTI label_2 lines, 15 fields (+ score for predictions)
+    <root>/mask_2/<id>.png       optional 16-bit instance ids, H x W, 0 = none,
+                                 id k + 1 = the object on line k of the label file
+
+There is no camera, so labels use KITTI's camera convention through a fixed axis
+permutation of the lidar frame: x_cam = -y, y_cam = -z, z_cam = x. A label line is::
+
+    type truncated occluded alpha  0 0 0 0  h w l  x_cam y_cam z_cam  rotation_y  [score]
+
+with location the bottom centre of the box, rotation_y = -yaw - pi/2, truncation 0,
+alpha -10, bbox 0 0 0 0. Mask PNG row i is grid row i (y grows with the row index) and
+column j grid column j.
+
+Every writer replaces its file atomically (write to a temporary name, then rename), so a
+killed export never leaves a half-written file under a final name.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from indoorbev_jax.config import DataConfig
+
+
+class DatasetError(ValueError):
+    """A dataset file is malformed; the message names the file (and line)."""
+
+
+@dataclasses.dataclass
+class ObjectLabels:
+    """Objects of one frame, in the lidar frame (numpy).
+
+    Attributes:
+      classes: int32 [M], class index.
+      dims: float32 [M, 3], (length, width, height).
+      pos: float32 [M, 3], box centre.
+      yaw: float32 [M], heading about +z from +x.
+      occlusion: int32 [M], 0 (fully visible) .. 3 (unknown / hardly seen).
+      scores: float32 [M] for predictions, None for ground truth.
+    """
+
+    classes: np.ndarray
+    dims: np.ndarray
+    pos: np.ndarray
+    yaw: np.ndarray
+    occlusion: np.ndarray
+    scores: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.classes = np.asarray(self.classes, np.int32).reshape(-1)
+        m = len(self.classes)
+        self.dims = np.asarray(self.dims, np.float32).reshape(m, 3)
+        self.pos = np.asarray(self.pos, np.float32).reshape(m, 3)
+        self.yaw = np.asarray(self.yaw, np.float32).reshape(m)
+        self.occlusion = np.asarray(self.occlusion, np.int32).reshape(m)
+        if self.scores is not None:
+            self.scores = np.asarray(self.scores, np.float32).reshape(m)
+
+    def __len__(self) -> int:
+        return len(self.classes)
+
+    @classmethod
+    def empty(cls, with_scores: bool = False) -> ObjectLabels:
+        return cls(
+            np.zeros(0),
+            np.zeros((0, 3)),
+            np.zeros((0, 3)),
+            np.zeros(0),
+            np.zeros(0),
+            np.zeros(0) if with_scores else None,
+        )
+
+    def boxes_bev(self) -> np.ndarray:
+        """float32 [M, 5] = (x, y, length, width, yaw), the rasteriser's box format."""
+        return np.concatenate([self.pos[:, :2], self.dims[:, :2], self.yaw[:, None]], axis=1)
+
+
+def wrap_angle(a):
+    """Wrap angles to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+# Points ------------------------------------------------------------------------------------
+
+
+def read_points(path: str | os.PathLike) -> np.ndarray:
+    """Reads a ``velodyne/*.bin`` file: float32 [N, 4] = (x, y, z, intensity)."""
+    path = Path(path)
+    size = path.stat().st_size
+    if size % 16:
+        raise DatasetError(
+            f"{path}: size {size} bytes is not a multiple of 16 (float32 x, y, z, intensity)"
+        )
+    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+
+
+def write_points(path: str | os.PathLike, points: np.ndarray) -> None:
+    points = np.asarray(points, np.float32)
+    if points.ndim != 2 or points.shape[1] != 4:
+        raise ValueError(f"points for {path}: expected shape [N, 4], got {points.shape}")
+    _atomic_write(Path(path), lambda p: points.tofile(p))
+
+
+# Labels ------------------------------------------------------------------------------------
+
+
+def labels_to_lines(labels: ObjectLabels, class_names: tuple[str, ...]) -> list[str]:
+    """Formats objects as KITTI label_2 lines (see the module docstring)."""
+    lines = []
+    for k in range(len(labels)):
+        length, width, height = (float(v) for v in labels.dims[k])
+        x, y, z = (float(v) for v in labels.pos[k])
+        rot_y = float(wrap_angle(-float(labels.yaw[k]) - math.pi / 2))
+        # Camera location of the bottom centre.
+        cam = (-y, -(z - height / 2), x)
+        fields = [
+            class_names[int(labels.classes[k])],
+            "0.00",
+            str(int(labels.occlusion[k])),
+            "-10",
+            "0.00",
+            "0.00",
+            "0.00",
+            "0.00",
+            *(f"{v:.6f}" for v in (height, width, length, *cam, rot_y)),
+        ]
+        if labels.scores is not None:
+            fields.append(f"{float(labels.scores[k]):.6f}")
+        lines.append(" ".join(fields))
+    return lines
+
+
+def write_labels(
+    path: str | os.PathLike, labels: ObjectLabels, class_names: tuple[str, ...]
+) -> None:
+    text = "".join(line + "\n" for line in labels_to_lines(labels, class_names))
+    _atomic_write(Path(path), lambda p: p.write_text(text))
+
+
+def parse_label_lines(lines: list[str], data: DataConfig, source: str) -> ObjectLabels:
+    """Parses KITTI label_2 lines; ``source`` names the file in error messages."""
+    rows, names, occl, scores = [], [], [], []
+    for lineno, line in enumerate(lines, start=1):
+        fields = line.split()
+        if not fields:
+            continue
+        if len(fields) not in (15, 16):
+            raise DatasetError(
+                f"{source}:{lineno}: expected 15 fields (16 with a score), got {len(fields)}"
+            )
+        name = fields[0]
+        try:
+            cls = data.class_index(name)
+        except KeyError:
+            raise DatasetError(
+                f"{source}:{lineno}: unknown class '{name}' (expected one of "
+                f"{list(data.class_names)} or a name mapped in data.class_map)"
+            ) from None
+        try:
+            values = [float(v) for v in fields[1:]]
+            occlusion = int(float(fields[2]))
+        except ValueError as e:
+            raise DatasetError(f"{source}:{lineno}: non-numeric field ({e})") from None
+        if not all(math.isfinite(v) for v in values[7:14]):
+            raise DatasetError(f"{source}:{lineno}: non-finite dimensions, location or angle")
+        names.append(cls)
+        occl.append(occlusion)
+        rows.append(values[7:14])
+        if len(fields) == 16:
+            scores.append(values[14])
+    if scores and len(scores) != len(rows):
+        raise DatasetError(f"{source}: some lines carry a score and some do not")
+    if not rows:
+        return ObjectLabels.empty()
+    h, w, l, xc, yc, zc, rot_y = np.asarray(rows, np.float64).T  # noqa: E741
+    # Invert the camera permutation; location is the bottom centre.
+    pos = np.stack([zc, -xc, -yc + h / 2], axis=1)
+    yaw = wrap_angle(-rot_y - np.pi / 2)
+    return ObjectLabels(
+        classes=np.asarray(names),
+        dims=np.stack([l, w, h], axis=1),
+        pos=pos,
+        yaw=yaw,
+        occlusion=np.asarray(occl),
+        scores=np.asarray(scores) if scores else None,
+    )
+
+
+def read_labels(path: str | os.PathLike, data: DataConfig) -> ObjectLabels:
+    """Reads a ``label_2/*.txt`` file. Errors name the file and line."""
+    path = Path(path)
+    return parse_label_lines(path.read_text().splitlines(), data, str(path))
+
+
+# Masks -------------------------------------------------------------------------------------
+
+
+def read_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
+    """Reads a 16-bit instance-id PNG as int32 [H, W]; its size must equal ``shape``."""
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            ids = np.asarray(im)
+    except OSError as e:
+        raise DatasetError(f"{path}: not a readable PNG ({e})") from None
+    if ids.shape != tuple(shape):
+        raise DatasetError(
+            f"{path}: mask of shape {ids.shape} (H, W), expected {tuple(shape)} from the grid"
+        )
+    return ids.astype(np.int32)
+
+
+def write_mask(path: str | os.PathLike, instance_ids: np.ndarray) -> None:
+    ids = np.asarray(instance_ids)
+    if ids.ndim != 2 or ids.min(initial=0) < 0 or ids.max(initial=0) > 65535:
+        raise ValueError(f"mask for {path}: expected [H, W] ids in 0..65535, got {ids.shape}")
+    image = Image.fromarray(ids.astype(np.uint16))
+
+    def write(tmp: Path) -> None:
+        image.save(tmp, format="PNG")
+
+    _atomic_write(Path(path), write)
+
+
+# Frames and splits -------------------------------------------------------------------------
+
+
+def frame_paths(root: str | os.PathLike, frame_id: str) -> dict[str, Path]:
+    root = Path(root)
+    return {
+        "points": root / "velodyne" / f"{frame_id}.bin",
+        "labels": root / "label_2" / f"{frame_id}.txt",
+        "mask": root / "mask_2" / f"{frame_id}.png",
+    }
+
+
+def write_frame(
+    root: str | os.PathLike,
+    frame_id: str,
+    points: np.ndarray,
+    labels: ObjectLabels,
+    class_names: tuple[str, ...],
+    instance_ids: np.ndarray | None = None,
+) -> None:
+    """Writes one frame. The label file is written last, so its presence marks the frame
+    complete (readers and resumable exports rely on that)."""
+    paths = frame_paths(root, frame_id)
+    write_points(paths["points"], points)
+    if instance_ids is not None:
+        write_mask(paths["mask"], instance_ids)
+    write_labels(paths["labels"], labels, class_names)
+
+
+def read_split(root: str | os.PathLike, split: str) -> list[str]:
+    path = Path(root) / f"{split}.txt"
+    if not path.exists():
+        raise DatasetError(f"{path}: split file not found")
+    return [line.strip() for line in path.read_text().splitlines() if line.strip()]
+
+
+def write_split(root: str | os.PathLike, split: str, ids: list[str]) -> None:
+    text = "".join(f"{i}\n" for i in ids)
+    _atomic_write(Path(root) / f"{split}.txt", lambda p: p.write_text(text))
+
+
+def list_frames(root: str | os.PathLike) -> list[str]:
+    """Frame ids that have a label file, sorted."""
+    return sorted(p.stem for p in (Path(root) / "label_2").glob("*.txt"))

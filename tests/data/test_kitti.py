@@ -1,0 +1,121 @@
+"""KITTI-style files: round trips, the camera convention, and bad input named clearly."""
+
+import math
+
+import numpy as np
+import pytest
+
+from indoorbev_jax.config import CLASS_NAMES, Config, DataConfig
+from indoorbev_jax.data import kitti
+
+DATA = DataConfig()
+
+
+def random_labels(rng, m, scores=False):
+    return kitti.ObjectLabels(
+        classes=rng.integers(0, 9, m),
+        dims=rng.uniform(0.1, 3.0, (m, 3)),
+        pos=rng.uniform(-5, 5, (m, 3)),
+        yaw=rng.uniform(-math.pi, math.pi, m),
+        occlusion=rng.integers(0, 4, m),
+        scores=rng.uniform(0, 1, m) if scores else None,
+    )
+
+
+def yaw_diff(a, b):
+    return np.abs(kitti.wrap_angle(a - b))
+
+
+@pytest.mark.parametrize("scores", [False, True])
+def test_label_round_trip(tmp_path, scores):
+    rng = np.random.default_rng(0)
+    for trial in range(20):
+        labels = random_labels(rng, int(rng.integers(0, 30)), scores)
+        path = tmp_path / f"{trial}.txt"
+        kitti.write_labels(path, labels, CLASS_NAMES)
+        back = kitti.read_labels(path, DATA)
+        np.testing.assert_array_equal(back.classes, labels.classes)
+        np.testing.assert_array_equal(back.occlusion, labels.occlusion)
+        np.testing.assert_allclose(back.dims, labels.dims, atol=1e-5)
+        np.testing.assert_allclose(back.pos, labels.pos, atol=1e-5)
+        assert (yaw_diff(back.yaw, labels.yaw) < 1e-5).all()
+        if scores:
+            np.testing.assert_allclose(back.scores, labels.scores, atol=1e-5)
+        else:
+            assert back.scores is None
+
+
+def test_camera_convention_fields():
+    # An object 2 m ahead, 1 m left, centre 0.5 m up, facing +y (yaw = pi/2), l w h = 3 2 1.
+    labels = kitti.ObjectLabels([1], [[3.0, 2.0, 1.0]], [[2.0, 1.0, 0.5]], [math.pi / 2], [0])
+    (line,) = kitti.labels_to_lines(labels, CLASS_NAMES)
+    f = line.split()
+    assert len(f) == 15 and f[0] == "Chair"
+    assert [float(v) for v in f[3:8]] == [-10, 0, 0, 0, 0]
+    h, w, l, xc, yc, zc, ry = (float(v) for v in f[8:15])  # noqa: E741
+    assert (h, w, l) == (1.0, 2.0, 3.0)
+    # x_cam = -y, y_cam = -z of the bottom centre (z = 0), z_cam = x.
+    assert (xc, yc, zc) == (-1.0, 0.0, 2.0)
+    assert abs(kitti.wrap_angle(ry + math.pi)) < 1e-6  # -yaw - pi/2 = -pi (= pi)
+
+
+def test_points_round_trip_and_bad_size(tmp_path):
+    pts = np.random.default_rng(0).normal(size=(100, 4)).astype(np.float32)
+    kitti.write_points(tmp_path / "a.bin", pts)
+    np.testing.assert_array_equal(kitti.read_points(tmp_path / "a.bin"), pts)
+    (tmp_path / "bad.bin").write_bytes(b"\0" * 20)
+    with pytest.raises(kitti.DatasetError, match=r"bad\.bin: size 20 bytes"):
+        kitti.read_points(tmp_path / "bad.bin")
+    (tmp_path / "empty.bin").write_bytes(b"")
+    assert kitti.read_points(tmp_path / "empty.bin").shape == (0, 4)
+
+
+def test_empty_label_file_is_valid(tmp_path):
+    (tmp_path / "e.txt").write_text("")
+    assert len(kitti.read_labels(tmp_path / "e.txt", DATA)) == 0
+
+
+GOOD = "Table 0.00 0 -10 0 0 0 0 1.0 1.0 1.0 0.0 0.0 2.0 0.0"
+
+
+@pytest.mark.parametrize(
+    "line, message",
+    [
+        ("Table 0 0 -10 0 0 0 0 1 1 1 0 0 2", r"l\.txt:2: expected 15 fields .* got 14"),
+        (GOOD.replace("2.0", "abc"), r"l\.txt:2: non-numeric field"),
+        (GOOD.replace("Table", "Sofabed"), r"l\.txt:2: unknown class 'Sofabed'"),
+        (GOOD.replace("2.0", "nan"), r"l\.txt:2: non-finite"),
+    ],
+)
+def test_bad_label_lines_name_file_and_line(tmp_path, line, message):
+    (tmp_path / "l.txt").write_text(GOOD + "\n" + line + "\n")
+    with pytest.raises(kitti.DatasetError, match=message):
+        kitti.read_labels(tmp_path / "l.txt", DATA)
+
+
+def test_unknown_class_mapped_in_config(tmp_path):
+    (tmp_path / "l.txt").write_text(GOOD.replace("Table", "Desk") + "\n")
+    data = DataConfig(class_map=(("Desk", "Table"),))
+    assert kitti.read_labels(tmp_path / "l.txt", data).classes.tolist() == [0]
+
+
+def test_mask_round_trip_and_wrong_size(tmp_path):
+    shape = Config.tiny().grid.shape
+    ids = np.random.default_rng(0).integers(0, 40000, shape)
+    kitti.write_mask(tmp_path / "m.png", ids)
+    np.testing.assert_array_equal(kitti.read_mask(tmp_path / "m.png", shape), ids)
+    with pytest.raises(kitti.DatasetError, match=r"m\.png: mask of shape \(40, 40\)"):
+        kitti.read_mask(tmp_path / "m.png", (50, 50))
+
+
+def test_atomic_write_leaves_no_partial_file(tmp_path):
+    class Boom(Exception):
+        pass
+
+    def write(p):
+        p.write_text("half")
+        raise Boom
+
+    with pytest.raises(Boom):
+        kitti._atomic_write(tmp_path / "x.txt", write)
+    assert list(tmp_path.iterdir()) == []
