@@ -272,6 +272,56 @@ class InferenceConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class AugmentConfig:
+    """Training augmentations (paper appendix "Data Augmentation"); 0 disables a step."""
+
+    flip_prob: float = 0.5  # mirror y -> -y
+    rotation: float = math.pi  # uniform in [-rotation, rotation] about +z
+    scale_range: tuple[float, float] = (0.95, 1.05)
+    jitter_std: float = 0.01  # metres, per point coordinate
+    point_drop_prob: float = 0.05  # each point independently
+    range_dropout_prob: float = 0.2  # drop one random range band of the frame
+    range_dropout_width: float = 0.5  # metres
+    noise_points: float = 0.01  # fraction of max_points injected as uniform clutter
+    shuffle_points: bool = True
+    box_noise_prob: float = 0.5  # per object
+    box_translation_std: float = 0.1  # metres
+    box_yaw_std: float = 0.1  # radians
+    box_scale_std: float = 0.03
+    mask_perturb_prob: float = 0.1  # per object: one-cell dilation or erosion
+    gt_sampling: int = 0  # objects pasted from the object database per frame
+    gt_sampling_attempts: int = 4  # candidate poses tried per pasted object
+
+    def __post_init__(self):
+        for name in (
+            "flip_prob",
+            "range_dropout_prob",
+            "point_drop_prob",
+            "box_noise_prob",
+            "mask_perturb_prob",
+            "noise_points",
+        ):
+            v = getattr(self, name)
+            if not 0.0 <= v <= 1.0:
+                _fail(f"augment.{name}", f"must lie in [0, 1], got {v!r}")
+        for name in (
+            "rotation",
+            "jitter_std",
+            "range_dropout_width",
+            "box_translation_std",
+            "box_yaw_std",
+            "box_scale_std",
+        ):
+            if getattr(self, name) < 0:
+                _fail(f"augment.{name}", f"must be >= 0, got {getattr(self, name)!r}")
+        lo, hi = self.scale_range
+        if not 0 < lo <= hi:
+            _fail("augment.scale_range", f"expected 0 < min <= max, got {self.scale_range!r}")
+        if self.gt_sampling < 0 or self.gt_sampling_attempts < 1:
+            _fail("augment.gt_sampling", "needs gt_sampling >= 0 and gt_sampling_attempts >= 1")
+
+
+@dataclasses.dataclass(frozen=True)
 class TrainConfig:
     """Optimiser, schedule and run control (paper "Implementation Details")."""
 
@@ -307,6 +357,75 @@ class TrainConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class SimConfig:
+    """Procedural scenes and simulated lidar frames (DESIGN section 10, ``indoorbev_sim``).
+
+    Layout plans are named "kind/index" (kind in ``layouts``, index < ``plans_per_layout``);
+    the test split draws only ``test_layouts``, train/val never do. ``test_variants``
+    ("Class/variant", e.g. "Misc/trolley") appear only in the test split.
+    """
+
+    pattern: str = "mid360"  # scan pattern name (indoorbev_sim.patterns)
+    num_rays: int = 20000  # rays per frame (MID-360: 200k points/s at 10 Hz)
+    frames_per_sequence: int = 8  # T frames per scene in sequence mode
+    frame_dt: float = 0.1  # seconds between frames
+    min_points: int = 5  # objects with fewer lidar points leave the targets
+    range_noise: float = 0.01  # metres, 1 sigma
+    dropout: float = 0.02  # probability that a return is lost
+    min_range: float = 0.1
+    max_range: float = 40.0
+    sensor_height: tuple[float, float] = (0.35, 0.8)  # lidar above the floor, metres
+    ego_speed: tuple[float, float] = (0.2, 1.0)  # m/s of the robot carrying the lidar
+    # Object slots per class (CLASS_NAMES order): the capacity of the scene template.
+    slots_per_class: tuple[int, ...] = (4, 8, 2, 3, 3, 4, 4, 2, 3)
+    max_scene_objects: int = 25  # also capped by data.max_objects
+    clearance: float = 0.1  # metres between any two objects' reserved footprints
+    placement_tries: int = 16  # candidate poses per object before it is left out
+    layouts: tuple[str, ...] = ("office", "lab", "corridor", "hall")
+    plans_per_layout: int = 8
+    test_layouts: tuple[str, ...] = ("office/7", "lab/7", "corridor/7", "hall/7")
+    test_variants: tuple[str, ...] = ("Misc/trolley",)
+    backend: str = "warp"  # ray caster: "warp" (indoorbev_sim.lidar) or "mujoco" (mj_multiRay)
+
+    def __post_init__(self):
+        for name in ("num_rays", "frames_per_sequence", "placement_tries", "plans_per_layout"):
+            _check_positive(f"sim.{name}", getattr(self, name))
+        for name in ("frame_dt", "max_range"):
+            _check_positive(f"sim.{name}", getattr(self, name))
+        for name in ("min_points", "max_scene_objects", "range_noise", "min_range", "clearance"):
+            if getattr(self, name) < 0:
+                _fail(f"sim.{name}", f"must be >= 0, got {getattr(self, name)!r}")
+        if not 0.0 <= self.dropout < 1.0:
+            _fail("sim.dropout", f"must lie in [0, 1), got {self.dropout!r}")
+        if self.min_range >= self.max_range:
+            _fail("sim.min_range", f"must be < max_range {self.max_range}, got {self.min_range}")
+        for name in ("sensor_height", "ego_speed"):
+            lo, hi = getattr(self, name)
+            if not 0 <= lo <= hi:
+                _fail(f"sim.{name}", f"expected 0 <= min <= max, got {getattr(self, name)!r}")
+        _check_len("sim.slots_per_class", self.slots_per_class, len(CLASS_NAMES))
+        if any(n < 0 for n in self.slots_per_class) or not sum(self.slots_per_class):
+            _fail("sim.slots_per_class", f"need counts >= 0, not all 0: {self.slots_per_class}")
+        kinds = ("office", "lab", "corridor", "hall")
+        if not self.layouts or any(k not in kinds for k in self.layouts):
+            _fail("sim.layouts", f"expected a non-empty subset of {kinds}, got {self.layouts!r}")
+        for name in self.test_layouts:
+            kind, _, index = name.partition("/")
+            if kind not in kinds or not index.isdigit() or int(index) >= self.plans_per_layout:
+                _fail(
+                    "sim.test_layouts",
+                    f"'{name}' is not 'kind/index' with kind in {kinds} and "
+                    f"index < plans_per_layout ({self.plans_per_layout})",
+                )
+        for name in self.test_variants:
+            cls, _, variant = name.partition("/")
+            if cls not in CLASS_NAMES or not variant:
+                _fail("sim.test_variants", f"'{name}' is not 'Class/variant' with a known class")
+        if self.backend not in ("warp", "mujoco"):
+            _fail("sim.backend", f"expected 'warp' or 'mujoco', got {self.backend!r}")
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     """Everything a run needs; see the module docstring for the presets."""
 
@@ -318,7 +437,9 @@ class Config:
     head: HeadConfig = HeadConfig()
     loss: LossConfig = LossConfig()
     inference: InferenceConfig = InferenceConfig()
+    augment: AugmentConfig = AugmentConfig()
     train: TrainConfig = TrainConfig()
+    sim: SimConfig = SimConfig()
 
     def __post_init__(self):
         if self.data.max_objects > self.head.num_queries:
@@ -371,6 +492,12 @@ class Config:
                 eval_every=10,
                 checkpoint_every=5,
                 keep_checkpoints=2,
+            ),
+            sim=SimConfig(
+                num_rays=1024,
+                frames_per_sequence=2,
+                slots_per_class=(1, 2, 1, 1, 1, 1, 1, 1, 1),
+                placement_tries=8,
             ),
         )
 

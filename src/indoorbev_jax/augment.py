@@ -1,0 +1,403 @@
+"""Training augmentations (paper appendix "Data Augmentation"), jittable with explicit keys.
+
+Each function takes and returns one unbatched ``Batch`` (points [N, 4], point_valid [N],
+targets with M objects and [M, H, W] masks); ``augment_batch`` vmaps the whole chain over a
+batch. Points, boxes and footprints always move together: footprints are resampled with the
+inverse of the map applied to the points (nearest cell centre), so a true-shape footprint
+stays true-shape. After every step the panoptic map is re-derived from the masks.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from indoorbev_jax.config import AugmentConfig, GridConfig
+from indoorbev_jax.data.rasterize import cell_centers, instance_ids_from_masks
+from indoorbev_jax.types import Batch, Targets
+
+# Points this close outside a box still belong to it (lidar hits lie on its surface).
+BOX_MARGIN = 0.03
+
+
+def _rot(theta: jax.Array) -> jax.Array:
+    """2 x 2 rotation matrices [..., 2, 2] for angles [...]."""
+    c, s = jnp.cos(theta), jnp.sin(theta)
+    return jnp.stack([jnp.stack([c, -s], -1), jnp.stack([s, c], -1)], -2)
+
+
+def wrap_angle(a: jax.Array) -> jax.Array:
+    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
+
+
+def warp_masks(masks: jax.Array, inverse: jax.Array, grid: GridConfig) -> jax.Array:
+    """Resamples masks under a per-mask affine map of the plane.
+
+    Args:
+      masks: bool [M, H, W] on ``grid``.
+      inverse: float [M, 2, 3], maps a destination point (x, y, 1) to its source point.
+      grid: the BEV grid.
+
+    Returns:
+      bool [M, H, W]: each destination cell takes the source cell under its mapped centre,
+      False where that falls outside the grid.
+    """
+    h, w = grid.shape
+    xs, ys = cell_centers(grid)
+    px, py = jnp.meshgrid(xs, ys)  # [H, W]
+    sx = inverse[:, 0, 0, None, None] * px + inverse[:, 0, 1, None, None] * py
+    sy = inverse[:, 1, 0, None, None] * px + inverse[:, 1, 1, None, None] * py
+    sx = sx + inverse[:, 0, 2, None, None]  # [M, H, W]
+    sy = sy + inverse[:, 1, 2, None, None]
+    j = jnp.floor((sx - grid.x_range[0]) / grid.cell_size).astype(jnp.int32)
+    i = jnp.floor((sy - grid.y_range[0]) / grid.cell_size).astype(jnp.int32)
+    inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+    flat = jnp.clip(i, 0, h - 1) * w + jnp.clip(j, 0, w - 1)  # [M, H, W]
+    src = masks.reshape(masks.shape[0], h * w)
+    out = jnp.take_along_axis(src, flat.reshape(masks.shape[0], h * w), axis=1)
+    return out.reshape(masks.shape) & inside
+
+
+def points_in_boxes(points: jax.Array, pos, dims, yaw, valid, margin=BOX_MARGIN) -> jax.Array:
+    """bool [M, N]: point n lies inside (oriented 3D) box m, grown by ``margin``."""
+    d = points[None, :, :3] - pos[:, None, :]  # [M, N, 3]
+    local = jnp.einsum("mji,mnj->mni", _rot(yaw), d[..., :2])  # rotate by -yaw
+    half = 0.5 * dims[:, None, :] + margin
+    inside = (jnp.abs(local) <= half[..., :2]).all(-1) & (jnp.abs(d[..., 2]) <= half[..., 2])
+    return inside & valid[:, None]
+
+
+def _in_workspace(xyz: jax.Array, grid: GridConfig) -> jax.Array:
+    return (
+        (xyz[..., 0] >= grid.x_range[0])
+        & (xyz[..., 0] < grid.x_range[1])
+        & (xyz[..., 1] >= grid.y_range[0])
+        & (xyz[..., 1] < grid.y_range[1])
+        & (xyz[..., 2] >= grid.z_range[0])
+        & (xyz[..., 2] <= grid.z_range[1])
+    )
+
+
+def _finish(points, point_valid, targets: Targets, grid: GridConfig) -> Batch:
+    point_valid = point_valid & _in_workspace(points, grid)
+    points = jnp.where(point_valid[:, None], points, 0.0)
+    masks = targets.masks & targets.valid[:, None, None]
+    targets = targets.replace(
+        masks=masks, instance_ids=instance_ids_from_masks(masks, targets.valid)
+    )
+    return Batch(points=points, point_valid=point_valid, targets=targets)
+
+
+def global_transform(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig) -> Batch:
+    """Random mirror (y -> -y), rotation about +z and uniform scaling about the origin."""
+    k_flip, k_rot, k_scale = jax.random.split(key, 3)
+    flip = jax.random.bernoulli(k_flip, cfg.flip_prob)
+    theta = jax.random.uniform(k_rot, (), minval=-cfg.rotation, maxval=cfg.rotation)
+    scale = jax.random.uniform(k_scale, (), minval=cfg.scale_range[0], maxval=cfg.scale_range[1])
+    mirror = jnp.diag(jnp.array([1.0, jnp.where(flip, -1.0, 1.0)]))
+    linear = scale * _rot(theta) @ mirror  # [2, 2], points: xy -> linear @ xy
+    t = frame.targets
+    xy = frame.points[:, :2] @ linear.T
+    points = jnp.concatenate([xy, frame.points[:, 2:3] * scale, frame.points[:, 3:]], axis=1)
+    pos = jnp.concatenate([t.pos[:, :2] @ linear.T, t.pos[:, 2:] * scale], axis=1)
+    yaw = wrap_angle(jnp.where(flip, -t.yaw, t.yaw) + theta)
+    inverse = jnp.concatenate([jnp.linalg.inv(linear), jnp.zeros((2, 1))], axis=1)  # [2, 3]
+    masks = warp_masks(t.masks, jnp.broadcast_to(inverse, (t.masks.shape[0], 2, 3)), grid)
+    targets = t.replace(pos=pos, dims=t.dims * scale, yaw=yaw, masks=masks)
+    return _finish(points, frame.point_valid, targets, grid)
+
+
+def point_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig) -> Batch:
+    """Jitter, random dropping, one range-band dropout, clutter injection, shuffling."""
+    k_jit, k_drop, k_band, k_r0, k_noise, k_perm = jax.random.split(key, 6)
+    n = frame.points.shape[0]
+    points = frame.points.at[:, :3].add(cfg.jitter_std * jax.random.normal(k_jit, (n, 3)))
+    valid = frame.point_valid & ~jax.random.bernoulli(k_drop, cfg.point_drop_prob, (n,))
+    max_range = float(np.hypot(max(map(abs, grid.x_range)), max(map(abs, grid.y_range))))
+    r0 = jax.random.uniform(k_r0, (), maxval=max_range)
+    r = jnp.hypot(points[:, 0], points[:, 1])
+    band = jax.random.bernoulli(k_band, cfg.range_dropout_prob) & (r >= r0)
+    valid &= ~(band & (r < r0 + cfg.range_dropout_width))
+    # Clutter goes into free slots only (invalid slots sort first), never over real points.
+    n_noise = int(round(cfg.noise_points * n))
+    if n_noise:
+        lo = jnp.array([grid.x_range[0], grid.y_range[0], grid.z_range[0], 0.0])
+        hi = jnp.array([grid.x_range[1], grid.y_range[1], grid.z_range[1], 1.0])
+        clutter = jax.random.uniform(k_noise, (n_noise, 4), minval=lo, maxval=hi)
+        slots = jnp.argsort(valid, stable=True)[:n_noise]
+        free = ~valid[slots]
+        points = points.at[slots].set(jnp.where(free[:, None], clutter, points[slots]))
+        valid = valid.at[slots].set(valid[slots] | free)
+    if cfg.shuffle_points:
+        perm = jax.random.permutation(k_perm, n)
+        points, valid = points[perm], valid[perm]
+    return _finish(points, valid, frame.targets, grid)
+
+
+def box_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig) -> Batch:
+    """Moves, turns and rescales single objects together with their points and footprints.
+
+    An object whose moved footprint would overlap another object's more than before keeps
+    its original pose (one pass: every object is checked against the others' new poses).
+    """
+    t = frame.targets
+    m = t.classes.shape[0]
+    k_on, k_t, k_yaw, k_s = jax.random.split(key, 4)
+    on = jax.random.bernoulli(k_on, cfg.box_noise_prob, (m,)) & t.valid
+    shift = cfg.box_translation_std * jax.random.normal(k_t, (m, 2))
+    dyaw = cfg.box_yaw_std * jax.random.normal(k_yaw, (m,))
+    scale = jnp.exp(cfg.box_scale_std * jax.random.normal(k_s, (m,)))
+
+    def moved_masks(on):
+        shift_on = jnp.where(on[:, None], shift, 0.0)
+        dyaw_on = jnp.where(on, dyaw, 0.0)
+        scale_on = jnp.where(on, scale, 1.0)
+        # dest -> source: c + R(-dyaw) (dest - c - shift) / scale
+        rinv = jnp.swapaxes(_rot(dyaw_on), -1, -2) / scale_on[:, None, None]  # [M, 2, 2]
+        c = t.pos[:, :2]
+        offset = c - jnp.einsum("mij,mj->mi", rinv, c + shift_on)
+        inverse = jnp.concatenate([rinv, offset[:, :, None]], axis=2)
+        return warp_masks(t.masks, inverse, grid), shift_on, dyaw_on, scale_on
+
+    def overlap(masks):
+        count = masks.sum(0)  # [H, W]
+        return (masks & (count - masks > 0)).sum((1, 2))  # [M] cells shared with others
+
+    new_masks, _, _, _ = moved_masks(on)
+    on &= overlap(new_masks & t.valid[:, None, None]) <= overlap(t.masks)
+    masks, shift_on, dyaw_on, scale_on = moved_masks(on)
+
+    inside = points_in_boxes(frame.points, t.pos, t.dims, t.yaw, t.valid)  # [M, N]
+    owner = jnp.argmax(inside, axis=0)  # first containing box
+    has_owner = inside.any(0) & frame.point_valid
+    c = t.pos[owner]  # [N, 3]
+    rel = frame.points[:, :3] - c
+    xy = jnp.einsum("nij,nj->ni", _rot(dyaw_on[owner]), rel[:, :2]) * scale_on[owner, None]
+    z = rel[:, 2:] * scale_on[owner, None]
+    moved = jnp.concatenate([c[:, :2] + shift_on[owner] + xy, c[:, 2:] + z], axis=1)
+    xyz = jnp.where(has_owner[:, None], moved, frame.points[:, :3])
+    points = jnp.concatenate([xyz, frame.points[:, 3:]], axis=1)
+
+    pos = t.pos.at[:, :2].add(shift_on)
+    targets = t.replace(
+        pos=pos,
+        dims=t.dims * scale_on[:, None],
+        yaw=wrap_angle(t.yaw + dyaw_on),
+        masks=masks,
+    )
+    return _finish(points, frame.point_valid, targets, grid)
+
+
+def mask_perturbation(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig) -> Batch:
+    """Per object, with probability ``mask_perturb_prob``: one-cell dilation or erosion
+    (3 x 3). An erosion that would empty a mask leaves it unchanged."""
+    t = frame.targets
+    m = t.classes.shape[0]
+    k_on, k_kind = jax.random.split(key)
+    on = jax.random.bernoulli(k_on, cfg.mask_perturb_prob, (m,)) & t.valid
+    dilate = jax.random.bernoulli(k_kind, 0.5, (m,))
+    x = t.masks.astype(jnp.int8)
+    pool = lambda v, init, op: jax.lax.reduce_window(  # noqa: E731
+        v, init, op, (1, 3, 3), (1, 1, 1), "SAME"
+    )
+    dilated = pool(x, jnp.int8(0), jax.lax.max) > 0
+    eroded = pool(x, jnp.int8(1), jax.lax.min) > 0
+    eroded = jnp.where(eroded.any((1, 2))[:, None, None], eroded, t.masks)
+    new = jnp.where(dilate[:, None, None], dilated, eroded)
+    masks = jnp.where(on[:, None, None], new, t.masks)
+    return _finish(frame.points, frame.point_valid, t.replace(masks=masks), grid)
+
+
+@struct.dataclass
+class ObjectDatabase:
+    """Objects cut out of training frames for ground-truth sampling (static shapes).
+
+    Attributes:
+      points: float32 [D, P, 4], object-local (centre at 0, heading along +x) + intensity.
+      point_valid: bool [D, P].
+      classes: int32 [D]; dims: float32 [D, 3]; z: float32 [D], centre height.
+      footprints: bool [D, S, S], object-local footprint at the grid's cell size; local
+        cell (a, b) has centre ((b - S/2 + 0.5) v, (a - S/2 + 0.5) v).
+    """
+
+    points: jax.Array
+    point_valid: jax.Array
+    classes: jax.Array
+    dims: jax.Array
+    z: jax.Array
+    footprints: jax.Array
+
+
+def _local_patch_centres(size: int, cell: float) -> jax.Array:
+    c = (jnp.arange(size) - size / 2 + 0.5) * cell
+    u, v = jnp.meshgrid(c, c)  # [S, S], u along x (columns)
+    return jnp.stack([u, v], -1)  # [S, S, 2]
+
+
+def build_object_database(
+    batch: Batch, grid: GridConfig, max_points: int = 256, patch_cells: int | None = None
+) -> ObjectDatabase:
+    """Cuts every valid object (its points and true footprint) out of a batch of frames.
+
+    Args:
+      batch: a batch (leading axis B) of frames.
+      grid: the BEV grid of the batch.
+      max_points: P, points kept per object (the first ones found).
+      patch_cells: S, side of the local footprint patch in cells (default: 4 m worth).
+
+    Returns:
+      An ``ObjectDatabase`` of the D valid objects of the batch.
+    """
+    s = patch_cells or int(np.ceil(4.0 / grid.cell_size))
+    local_centres = _local_patch_centres(s, grid.cell_size)  # [S, S, 2]
+    h, w = grid.shape
+
+    def one_frame(frame_points, frame_valid, t: Targets):
+        inside = points_in_boxes(frame_points, t.pos, t.dims, t.yaw, t.valid)  # [M, N]
+        inside &= frame_valid[None]
+        order = jnp.argsort(~inside, axis=1, stable=True)[:, :max_points]  # [M, P]
+        keep = jnp.take_along_axis(inside, order, axis=1)
+        pts = frame_points[order]  # [M, P, 4]
+        rel = pts[..., :2] - t.pos[:, None, :2]
+        local_xy = jnp.einsum("mji,mpj->mpi", _rot(t.yaw), rel)  # rotate by -yaw
+        local = jnp.concatenate(
+            [local_xy, pts[..., 2:3] - t.pos[:, None, 2:3], pts[..., 3:]], axis=-1
+        )
+        # Local patch cell -> world -> grid cell (nearest), like warp_masks.
+        world = jnp.einsum("mij,abj->mabi", _rot(t.yaw), local_centres) + t.pos[:, None, None, :2]
+        j = jnp.floor((world[..., 0] - grid.x_range[0]) / grid.cell_size).astype(jnp.int32)
+        i = jnp.floor((world[..., 1] - grid.y_range[0]) / grid.cell_size).astype(jnp.int32)
+        ok = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+        flat = (jnp.clip(i, 0, h - 1) * w + jnp.clip(j, 0, w - 1)).reshape(i.shape[0], -1)
+        fp = jnp.take_along_axis(t.masks.reshape(t.masks.shape[0], -1), flat, axis=1)
+        fp = fp.reshape(i.shape) & ok
+        return jnp.where(keep[..., None], local, 0.0), keep, fp
+
+    pts, keep, fps = jax.jit(jax.vmap(one_frame))(batch.points, batch.point_valid, batch.targets)
+    sel = np.asarray(batch.targets.valid).reshape(-1)
+    flat = lambda a: jnp.asarray(np.asarray(a).reshape(-1, *a.shape[2:])[sel])  # noqa: E731
+    t = batch.targets
+    return ObjectDatabase(
+        points=flat(pts),
+        point_valid=flat(keep),
+        classes=flat(t.classes),
+        dims=flat(t.dims),
+        z=flat(t.pos)[:, 2],
+        footprints=flat(fps),
+    )
+
+
+def gt_sampling(
+    key: jax.Array, frame: Batch, database: ObjectDatabase, grid: GridConfig, cfg: AugmentConfig
+) -> Batch:
+    """Pastes up to ``cfg.gt_sampling`` database objects at random free poses.
+
+    A candidate pose is rejected when its footprint touches any existing or already pasted
+    footprint, or when more than 5 scene points above floor level fall inside its box
+    (walls, unlabelled clutter). Pasted objects take free target slots and free point
+    slots; scene points under a pasted footprint and inside its height are removed.
+    """
+    h, w = grid.shape
+    d_count, s = database.footprints.shape[0], database.footprints.shape[1]
+    n_attempts = cfg.gt_sampling_attempts
+    xs, ys = cell_centers(grid)
+    px, py = jnp.meshgrid(xs, ys)  # [H, W]
+
+    def footprint_at(d, x, y, yaw):
+        # Grid cell -> object-local patch cell (nearest).
+        rel = jnp.stack([px - x, py - y], -1)  # [H, W, 2]
+        local = jnp.einsum("ji,hwj->hwi", _rot(yaw), rel)
+        b = jnp.floor(local[..., 0] / grid.cell_size + s / 2).astype(jnp.int32)
+        a = jnp.floor(local[..., 1] / grid.cell_size + s / 2).astype(jnp.int32)
+        ok = (a >= 0) & (a < s) & (b >= 0) & (b < s)
+        return database.footprints[d, jnp.clip(a, 0, s - 1), jnp.clip(b, 0, s - 1)] & ok
+
+    def point_cells(points):
+        j = jnp.floor((points[:, 0] - grid.x_range[0]) / grid.cell_size).astype(jnp.int32)
+        i = jnp.floor((points[:, 1] - grid.y_range[0]) / grid.cell_size).astype(jnp.int32)
+        return jnp.clip(i, 0, h - 1), jnp.clip(j, 0, w - 1)
+
+    def paste(carry, key):
+        points, valid, t = carry
+        k_d, k_xy, k_yaw = jax.random.split(key, 3)
+        d = jax.random.randint(k_d, (), 0, d_count)
+        lo = jnp.array([grid.x_range[0], grid.y_range[0]])
+        hi = jnp.array([grid.x_range[1], grid.y_range[1]])
+        xy = jax.random.uniform(k_xy, (n_attempts, 2), minval=lo, maxval=hi)
+        yaw = jax.random.uniform(k_yaw, (n_attempts,), minval=-jnp.pi, maxval=jnp.pi)
+        fps = jax.vmap(footprint_at, in_axes=(None, 0, 0, 0))(d, xy[:, 0], xy[:, 1], yaw)
+        occupied = (t.masks & t.valid[:, None, None]).any(0)
+        hits_object = (fps & occupied).any((1, 2))
+        ci, cj = point_cells(points)
+        floor_z = database.z[d] - 0.5 * database.dims[d, 2] + 0.05
+        top_z = database.z[d] + 0.5 * database.dims[d, 2]
+        in_height = (points[:, 2] > floor_z) & (points[:, 2] <= top_z) & valid  # [N]
+        under = fps[:, ci, cj]  # [A, N]
+        hits_scene = (under & in_height).sum(1) > 5
+        ok = fps.any((1, 2)) & ~hits_object & ~hits_scene
+        pick = jnp.argmax(ok)
+        slot = jnp.argmin(t.valid)  # first free target slot
+        accept = ok[pick] & ~t.valid[slot]
+        fp = fps[pick]
+        # Points: drop the scene points the object hides, then fill free slots.
+        valid = valid & ~(accept & under[pick] & in_height)
+        local = database.points[d]  # [P, 4]
+        world_xy = local[:, :2] @ _rot(yaw[pick]).T + xy[pick]
+        new = jnp.concatenate(
+            [world_xy, local[:, 2:3] + database.z[d], local[:, 3:]], axis=1
+        )  # [P, 4]
+        new_valid = database.point_valid[d] & accept
+        slots = jnp.argsort(valid, stable=True)[: new.shape[0]]
+        free = ~valid[slots] & new_valid
+        points = points.at[slots].set(jnp.where(free[:, None], new, points[slots]))
+        valid = valid.at[slots].set(valid[slots] | free)
+        put = lambda a, v: a.at[slot].set(jnp.where(accept, v, a[slot]))  # noqa: E731
+        t = t.replace(
+            classes=put(t.classes, database.classes[d]),
+            dims=put(t.dims, database.dims[d]),
+            pos=put(t.pos, jnp.concatenate([xy[pick], database.z[d][None]])),
+            yaw=put(t.yaw, wrap_angle(yaw[pick])),
+            valid=put(t.valid, True),
+            masks=put(t.masks, fp),
+        )
+        return (points, valid, t), None
+
+    keys = jax.random.split(key, cfg.gt_sampling)
+    (points, valid, t), _ = jax.lax.scan(
+        paste, (frame.points, frame.point_valid, frame.targets), keys
+    )
+    return _finish(points, valid, t, grid)
+
+
+def augment(
+    key: jax.Array,
+    frame: Batch,
+    grid: GridConfig,
+    cfg: AugmentConfig,
+    database: ObjectDatabase | None = None,
+) -> Batch:
+    """The full chain on one frame: GT sampling, box noise, global transform, mask
+    perturbation, point noise."""
+    k_gt, k_box, k_glob, k_mask, k_pts = jax.random.split(key, 5)
+    if database is not None and cfg.gt_sampling:
+        frame = gt_sampling(k_gt, frame, database, grid, cfg)
+    if cfg.box_noise_prob:
+        frame = box_noise(k_box, frame, grid, cfg)
+    frame = global_transform(k_glob, frame, grid, cfg)
+    if cfg.mask_perturb_prob:
+        frame = mask_perturbation(k_mask, frame, grid, cfg)
+    return point_noise(k_pts, frame, grid, cfg)
+
+
+def augment_batch(
+    key: jax.Array,
+    batch: Batch,
+    grid: GridConfig,
+    cfg: AugmentConfig,
+    database: ObjectDatabase | None = None,
+) -> Batch:
+    """``augment`` over a batch, one independent key per frame."""
+    keys = jax.random.split(key, batch.points.shape[0])
+    return jax.vmap(lambda k, f: augment(k, f, grid, cfg, database))(keys, batch)

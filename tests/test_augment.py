@@ -1,0 +1,184 @@
+"""Augmentations: points, boxes and footprints move together; invariants of each step."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from indoorbev_jax import augment as aug
+from indoorbev_jax.config import AugmentConfig, Config
+from indoorbev_jax.data.dataset import make_targets
+from indoorbev_jax.data.kitti import ObjectLabels
+from indoorbev_jax.data.rasterize import instance_ids_from_masks
+from indoorbev_jax.types import Batch
+
+CFG = Config.tiny()
+GRID = CFG.grid
+OFF = AugmentConfig(
+    flip_prob=0.0, rotation=0.0, scale_range=(1.0, 1.0), jitter_std=0.0, point_drop_prob=0.0,
+    range_dropout_prob=0.0, noise_points=0.0, shuffle_points=False, box_noise_prob=0.0,
+    mask_perturb_prob=0.0,
+)  # fmt: skip
+
+
+def make_frame(seed=0):
+    rng = np.random.default_rng(seed)
+    labels = ObjectLabels(
+        classes=[0, 1, 6],
+        dims=[[1.6, 0.8, 0.75], [0.5, 0.5, 0.9], [0.5, 0.4, 1.7]],
+        pos=[[1.5, 1.0, 0.375], [-2.0, -1.5, 0.45], [0.0, 3.0, 0.85]],
+        yaw=[0.4, -1.0, 2.0],
+        occlusion=[0, 0, 0],
+    )
+    pts = []
+    for k in range(3):
+        local = rng.uniform(-0.45, 0.45, (150, 3)) * labels.dims[k]
+        c, s = np.cos(labels.yaw[k]), np.sin(labels.yaw[k])
+        xy = local[:, :2] @ np.array([[c, s], [-s, c]]) + labels.pos[k, :2]
+        pts.append(np.column_stack([xy, local[:, 2] + labels.pos[k, 2], rng.random(150)]))
+    floor = np.column_stack([rng.uniform(-4.5, 4.5, (300, 2)), np.zeros(300), rng.random(300)])
+    pts = np.concatenate(pts + [floor]).astype(np.float32)
+    points = np.zeros((CFG.data.max_points, 4), np.float32)
+    points[: len(pts)] = pts
+    valid = np.arange(CFG.data.max_points) < len(pts)
+    targets = make_targets(labels, GRID, CFG.data.max_objects)
+    return jax.tree.map(jnp.asarray, Batch(points=points, point_valid=valid, targets=targets))
+
+
+def membership(frame):
+    t = frame.targets
+    return np.asarray(aug.points_in_boxes(frame.points, t.pos, t.dims, t.yaw, t.valid, 1e-3))
+
+
+def check_consistent(frame):
+    t = frame.targets
+    np.testing.assert_array_equal(t.instance_ids, instance_ids_from_masks(t.masks, t.valid))
+    pts = np.asarray(frame.points)
+    assert (pts[~np.asarray(frame.point_valid)] == 0).all()
+
+
+def test_mirror_flips_rows_exactly():
+    frame = make_frame()
+    out = aug.global_transform(
+        jax.random.key(0), frame, GRID, dataclasses.replace(OFF, flip_prob=1.0)
+    )
+    np.testing.assert_array_equal(out.targets.masks, frame.targets.masks[:, ::-1, :])
+    np.testing.assert_allclose(out.points[:, 1], -frame.points[:, 1])
+    check_consistent(out)
+
+
+@pytest.mark.parametrize("quarter", [1, 2, 3])
+def test_warp_by_quarter_turns_equals_rot90(quarter):
+    masks = make_frame().targets.masks
+    theta = quarter * np.pi / 2
+    c, s = np.cos(theta), np.sin(theta)
+    inverse = jnp.asarray([[c, s, 0.0], [-s, c, 0.0]], jnp.float32)  # R(-theta)
+    out = aug.warp_masks(masks, jnp.broadcast_to(inverse, (masks.shape[0], 2, 3)), GRID)
+    # Rows grow with y and columns with x, so a counter-clockwise turn is rot90 on (W, H) axes.
+    np.testing.assert_array_equal(out, np.rot90(np.asarray(masks), k=quarter, axes=(2, 1)))
+
+
+def test_global_transform_keeps_points_in_their_boxes():
+    frame = make_frame()
+    cfg = dataclasses.replace(OFF, flip_prob=0.5, rotation=np.pi, scale_range=(0.9, 1.1))
+    before = membership(frame)
+    for seed in range(5):
+        out = jax.jit(aug.global_transform, static_argnums=(2, 3))(
+            jax.random.key(seed), frame, GRID, cfg
+        )
+        np.testing.assert_array_equal(membership(out)[:, :600], before[:, :600])
+        # Nearest-cell resampling: every footprint cell lies within half a (scaled) cell
+        # diagonal of the transformed box, and the footprint survives.
+        t = out.targets
+        xs, ys = np.meshgrid(*(np.asarray(c) for c in aug.cell_centers(GRID)))
+        cells = jnp.asarray(np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1))
+        flat_dims = t.dims.at[:, 2].set(1.0)
+        near = aug.points_in_boxes(cells, t.pos.at[:, 2].set(0), flat_dims, t.yaw, t.valid, 0.2)
+        masks = np.asarray(t.masks).reshape(t.masks.shape[0], -1)
+        assert not (masks & ~np.asarray(near)).any()
+        assert masks[:3].any(1).all()
+        check_consistent(out)
+
+
+def test_box_noise_moves_points_with_boxes_without_new_overlap():
+    frame = make_frame()
+    cfg = dataclasses.replace(OFF, box_noise_prob=1.0, box_translation_std=0.3, box_yaw_std=0.3)
+    before = membership(frame)
+    out = aug.box_noise(jax.random.key(1), frame, GRID, cfg)
+    assert not np.allclose(out.targets.pos, frame.targets.pos)
+    np.testing.assert_array_equal(membership(out)[:, :450], before[:, :450])
+    overlap = np.asarray(out.targets.masks.sum(0) > 1).sum()
+    assert overlap <= np.asarray(frame.targets.masks.sum(0) > 1).sum()
+    check_consistent(out)
+
+
+def test_point_noise_only_fills_free_slots_and_stays_in_workspace():
+    frame = make_frame()
+    n_valid = int(frame.point_valid.sum())
+    cfg = dataclasses.replace(OFF, noise_points=0.05, jitter_std=0.01)
+    out = aug.point_noise(jax.random.key(2), frame, GRID, cfg)
+    assert bool(out.point_valid[:n_valid].all())  # real points are never overwritten
+    assert np.abs(out.points[:n_valid, :3] - frame.points[:n_valid, :3]).max() < 0.1
+    assert int(out.point_valid[n_valid:].sum()) == round(0.05 * CFG.data.max_points)
+    p = np.asarray(out.points)[np.asarray(out.point_valid)]
+    assert (np.abs(p[:, :2]) < 5).all()
+    check_consistent(out)
+    dropped = aug.point_noise(
+        jax.random.key(3), frame, GRID, dataclasses.replace(OFF, point_drop_prob=0.1)
+    )
+    kept = int(dropped.point_valid.sum())
+    assert 0.8 * n_valid < kept < n_valid
+    np.testing.assert_array_equal(
+        dropped.points[dropped.point_valid], frame.points[dropped.point_valid]
+    )
+
+
+def test_mask_perturbation_dilates_or_erodes():
+    frame = make_frame()
+    out = aug.mask_perturbation(
+        jax.random.key(3), frame, GRID, dataclasses.replace(OFF, mask_perturb_prob=1.0)
+    )
+    old, new = np.asarray(frame.targets.masks[:3]), np.asarray(out.targets.masks[:3])
+    for o, n in zip(old, new, strict=True):
+        square = np.ones((3, 3), bool)
+        dilated = ndimage.binary_dilation(o, square)
+        eroded = ndimage.binary_erosion(o, square, border_value=1)
+        expected = [dilated, eroded if eroded.any() else o]
+        assert any((n == e).all() for e in expected)
+    check_consistent(out)
+
+
+def test_gt_sampling_pastes_collision_free_objects_with_their_points():
+    frame = make_frame()
+    batch = jax.tree.map(lambda a: a[None], frame)
+    db = aug.build_object_database(batch, GRID, max_points=64)
+    assert db.classes.tolist() == [0, 1, 6]
+    assert (np.asarray(db.point_valid).sum(1) == 64).all()
+    cfg = dataclasses.replace(OFF, gt_sampling=3, gt_sampling_attempts=8)
+    out = aug.gt_sampling(jax.random.key(4), frame, db, GRID, cfg)
+    t = out.targets
+    added = int(t.valid.sum()) - 3
+    assert added >= 1
+    masks = np.asarray(t.masks)
+    assert (masks.sum(0) <= 1).all()  # no footprint overlaps
+    inside = membership(out)
+    for k in range(3, 3 + added):
+        assert masks[k].any()
+        assert inside[k].sum() >= 60  # its pasted points came along
+    check_consistent(out)
+
+
+def test_full_chain_is_deterministic_and_vmaps():
+    batch = jax.tree.map(lambda *a: jnp.stack(a), make_frame(0), make_frame(1))
+    run = jax.jit(aug.augment_batch, static_argnums=(2, 3))
+    a = run(jax.random.key(7), batch, GRID, CFG.augment)
+    b = run(jax.random.key(7), batch, GRID, CFG.augment)
+    jax.tree.map(np.testing.assert_array_equal, a, b)
+    keys = jax.random.split(jax.random.key(7), 2)
+    for i in range(2):
+        one = aug.augment(keys[i], jax.tree.map(lambda x, i=i: x[i], batch), GRID, CFG.augment)
+        np.testing.assert_allclose(one.points, a.points[i], atol=1e-5)
+        np.testing.assert_array_equal(one.targets.masks, a.targets.masks[i])
