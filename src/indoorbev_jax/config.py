@@ -330,8 +330,10 @@ class TrainConfig:
     weight_decay: float = 1e-4
     warmup_steps: int = 500
     total_steps: int = 50_000
-    grad_clip_norm: float = 1.0
+    grad_clip_norm: float = 1.0  # 0 disables clipping
     bfloat16: bool = False
+    augment: bool = True  # run the augmentation chain (config.augment) in the train step
+    eval_batches: int = 8  # validation batches per evaluation
     seed: int = 0
     log_every: int = 50
     eval_every: int = 1000
@@ -341,6 +343,7 @@ class TrainConfig:
     def __post_init__(self):
         for name in (
             "batch_size",
+            "eval_batches",
             "total_steps",
             "log_every",
             "eval_every",
@@ -365,7 +368,7 @@ class SimConfig:
     ("Class/variant", e.g. "Misc/trolley") appear only in the test split.
     """
 
-    pattern: str = "mid360"  # scan pattern name (indoorbev_sim.patterns)
+    pattern: str = "mid360"  # "mid360", "vlp16", "os128" or "grid" (indoorbev_sim.patterns)
     num_rays: int = 20000  # rays per frame (MID-360: 200k points/s at 10 Hz)
     frames_per_sequence: int = 8  # T frames per scene in sequence mode
     frame_dt: float = 0.1  # seconds between frames
@@ -381,14 +384,15 @@ class SimConfig:
     max_scene_objects: int = 25  # also capped by data.max_objects
     clearance: float = 0.1  # metres between any two objects' reserved footprints
     placement_tries: int = 16  # candidate poses per object before it is left out
+    bank_per_variant: int = 256  # pre-built random instances of each object variant
     layouts: tuple[str, ...] = ("office", "lab", "corridor", "hall")
     plans_per_layout: int = 8
     test_layouts: tuple[str, ...] = ("office/7", "lab/7", "corridor/7", "hall/7")
     test_variants: tuple[str, ...] = ("Misc/trolley",)
-    backend: str = "warp"  # ray caster: "warp" (indoorbev_sim.lidar) or "mujoco" (mj_multiRay)
 
     def __post_init__(self):
-        for name in ("num_rays", "frames_per_sequence", "placement_tries", "plans_per_layout"):
+        for name in ("num_rays", "frames_per_sequence", "placement_tries", "plans_per_layout",
+                     "bank_per_variant"):  # fmt: skip
             _check_positive(f"sim.{name}", getattr(self, name))
         for name in ("frame_dt", "max_range"):
             _check_positive(f"sim.{name}", getattr(self, name))
@@ -406,6 +410,11 @@ class SimConfig:
         _check_len("sim.slots_per_class", self.slots_per_class, len(CLASS_NAMES))
         if any(n < 0 for n in self.slots_per_class) or not sum(self.slots_per_class):
             _fail("sim.slots_per_class", f"need counts >= 0, not all 0: {self.slots_per_class}")
+        patterns = ("mid360", "vlp16", "os128", "grid")
+        if self.pattern not in patterns:
+            _fail("sim.pattern", f"expected one of {patterns}, got {self.pattern!r}")
+        if self.num_rays % {"mid360": 4, "vlp16": 16, "os128": 128, "grid": 32}[self.pattern]:
+            _fail("sim.num_rays", f"must be a multiple of the beams of '{self.pattern}'")
         kinds = ("office", "lab", "corridor", "hall")
         if not self.layouts or any(k not in kinds for k in self.layouts):
             _fail("sim.layouts", f"expected a non-empty subset of {kinds}, got {self.layouts!r}")
@@ -421,8 +430,6 @@ class SimConfig:
             cls, _, variant = name.partition("/")
             if cls not in CLASS_NAMES or not variant:
                 _fail("sim.test_variants", f"'{name}' is not 'Class/variant' with a known class")
-        if self.backend not in ("warp", "mujoco"):
-            _fail("sim.backend", f"expected 'warp' or 'mujoco', got {self.backend!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -492,11 +499,12 @@ class Config:
                 eval_every=10,
                 checkpoint_every=5,
                 keep_checkpoints=2,
+                eval_batches=1,
             ),
             sim=SimConfig(
-                num_rays=1024,
+                num_rays=2048,
                 frames_per_sequence=2,
-                slots_per_class=(1, 2, 1, 1, 1, 1, 1, 1, 1),
+                slots_per_class=(2, 2, 1, 1, 1, 2, 2, 1, 2),
                 placement_tries=8,
             ),
         )

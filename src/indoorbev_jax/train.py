@@ -1,0 +1,538 @@
+"""Training: one jitted step (augment -> forward -> match -> loss -> update), exact resume.
+
+``train_and_evaluate(config, workdir)`` is what ``experiments/train.py`` runs. The run
+directory holds ``config.json``, ``metrics.jsonl`` (one JSON object a line), TensorBoard
+event files under ``tb/``, orbax checkpoints under ``checkpoints/`` (the latest
+``train.keep_checkpoints``) and ``best/`` (the best by validation ``metric``).
+
+Exact resume: the data of step s and every random key of step s are pure functions of
+(seed, s), and the state is restored bit for bit, so a run killed at any point and
+restarted with the same command ends with the parameters of an uninterrupted run.
+
+Values a sweep varies (learning rate, loss weights) live in ``Hyper`` and enter the step as
+arrays, so ``jax.vmap`` over a leading axis of K states and K ``Hyper`` trains K models at
+once (``experiments/sweep.py``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import orbax.checkpoint as ocp
+from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from indoorbev_jax.augment import ObjectDatabase, augment_batch
+from indoorbev_jax.config import Config
+from indoorbev_jax.losses import set_loss
+from indoorbev_jax.models import IndoorBEV
+from indoorbev_jax.types import Batch
+
+log = logging.getLogger("indoorbev_jax.train")
+
+
+@struct.dataclass
+class TrainState:
+    """Everything that changes during training; checkpointed whole.
+
+    Attributes:
+      step: int32 scalar, steps taken so far.
+      params: model parameters.
+      opt_state: optax state (learning rate among its hyperparameters).
+      skipped: int32 scalar, steps whose loss or gradients were not finite (not applied).
+    """
+
+    step: jax.Array
+    params: Any
+    opt_state: Any
+    skipped: jax.Array
+
+
+@struct.dataclass
+class Hyper:
+    """Traced hyperparameters: a leading axis K of these trains K models under vmap.
+
+    Attributes:
+      learning_rate: peak learning rate (scalar array).
+      weights: loss weights as ``LossConfig.weights()`` names them (scalar arrays).
+    """
+
+    learning_rate: jax.Array
+    weights: dict[str, jax.Array]
+
+    @classmethod
+    def from_config(cls, config: Config) -> Hyper:
+        weights = config.loss.weights()
+        weights["background"] = config.loss.background_weight
+        return cls(
+            learning_rate=jnp.float32(config.train.learning_rate),
+            weights={k: jnp.float32(v) for k, v in weights.items()},
+        )
+
+
+def lr_factor(step: jax.Array, warmup: int, total: int) -> jax.Array:
+    """Linear warm-up from 0 to 1 over ``warmup`` steps, then cosine decay to 0 at ``total``."""
+    step = jnp.asarray(step, jnp.float32)
+    warm = step / max(warmup, 1)
+    progress = jnp.clip((step - warmup) / max(total - warmup, 1), 0.0, 1.0)
+    cosine = 0.5 * (1.0 + jnp.cos(jnp.pi * progress))
+    return jnp.where(step < warmup, warm, cosine)
+
+
+def make_optimizer(config: Config) -> optax.GradientTransformation:
+    """Gradient clipping + AdamW whose learning rate the step sets (``inject_hyperparams``)."""
+    t = config.train
+    clip = optax.clip_by_global_norm(t.grad_clip_norm) if t.grad_clip_norm else optax.identity()
+    adamw = optax.inject_hyperparams(optax.adamw)(
+        learning_rate=t.learning_rate, weight_decay=t.weight_decay
+    )
+    return optax.chain(clip, adamw)
+
+
+def _set_learning_rate(opt_state, lr: jax.Array):
+    clip_state, adam_state = opt_state
+    hyper = dict(adam_state.hyperparams, learning_rate=jnp.asarray(lr, jnp.float32))
+    return (clip_state, adam_state._replace(hyperparams=hyper))
+
+
+def init_state(config: Config, key: jax.Array) -> TrainState:
+    """Fresh parameters and optimizer state for ``config``."""
+    model = IndoorBEV(config)
+    n = config.data.max_points
+    params = model.init(key, jnp.zeros((1, n, 4)), jnp.zeros((1, n), bool))
+    return TrainState(
+        step=jnp.int32(0),
+        params=params,
+        opt_state=make_optimizer(config).init(params),
+        skipped=jnp.int32(0),
+    )
+
+
+def _all_finite(tree) -> jax.Array:
+    leaves = [jnp.isfinite(x).all() for x in jax.tree.leaves(tree)]
+    return jnp.stack(leaves).all()
+
+
+def make_train_step(
+    config: Config, database: ObjectDatabase | None = None
+) -> Callable[[TrainState, Batch, jax.Array, Hyper], tuple[TrainState, dict]]:
+    """The un-jitted train step ``(state, batch, key, hyper) -> (state, metrics)``.
+
+    ``key`` is the run's base key; the step's own keys come from ``fold_in(key, step)``.
+    A step whose loss or gradients are not finite leaves params and optimizer state as
+    they were and counts itself in ``state.skipped``.
+    """
+    model = IndoorBEV(config)
+    optimizer = make_optimizer(config)
+    t = config.train
+    needs_loss_key = config.loss.num_mask_points > 0
+
+    def step_fn(state: TrainState, batch: Batch, key: jax.Array, hyper: Hyper):
+        k_aug, k_loss = jax.random.split(jax.random.fold_in(key, state.step))
+        if t.augment:
+            batch = augment_batch(k_aug, batch, config.grid, config.augment, database)
+
+        def loss_fn(params):
+            predictions = model.apply(params, batch.points, batch.point_valid)
+            return set_loss(
+                predictions,
+                batch.targets,
+                hyper.weights,
+                config.loss,
+                key=k_loss if needs_loss_key else None,
+            )
+
+        (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        finite = jnp.isfinite(loss) & _all_finite(grads)
+        lr = hyper.learning_rate * lr_factor(state.step, t.warmup_steps, t.total_steps)
+        opt_state = _set_learning_rate(state.opt_state, lr)
+        updates, new_opt_state = optimizer.update(grads, opt_state, state.params)
+        new_params = optax.apply_updates(state.params, updates)
+        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)  # noqa: E731
+        state = TrainState(
+            step=state.step + 1,
+            params=keep(new_params, state.params),
+            opt_state=keep(new_opt_state, state.opt_state),
+            skipped=state.skipped + (~finite).astype(jnp.int32),
+        )
+        metrics = {
+            "loss": loss,
+            "learning_rate": lr,
+            "grad_norm": optax.global_norm(grads),
+            "finite": finite,
+            **{k: v for k, v in parts.items() if k != "num_targets"},
+        }
+        return state, metrics
+
+    return step_fn
+
+
+# Data -------------------------------------------------------------------------------------
+
+
+def data_mesh(devices=None) -> Mesh:
+    """A 1-D mesh over all (or the given) devices; the batch is split along ``data``."""
+    devices = np.asarray(jax.devices() if devices is None else devices)
+    return Mesh(devices, ("data",))
+
+
+def shard_batch(batch: Batch, mesh: Mesh) -> Batch:
+    """Places a host batch on the mesh, split along its leading axis.
+
+    Each process passes its own part of the global batch (multi-host: after
+    ``jax.distributed.initialize()``); with one process that is the whole batch.
+    """
+    sharding = NamedSharding(mesh, PartitionSpec("data"))
+    return jax.tree.map(
+        lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), batch
+    )
+
+
+def replicate(tree, mesh: Mesh):
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+
+
+class SimSource:
+    """On-device simulated batches: batch of step s = ``generate_batch(fold_in(key, s))``."""
+
+    def __init__(self, config: Config, key: jax.Array):
+        from indoorbev_sim import generate_batch
+
+        self.key = key
+        self._generate = jax.jit(lambda k: generate_batch(k, config))
+
+    def __call__(self, step: int) -> Batch:
+        return self._generate(jax.random.fold_in(self.key, step))
+
+
+class KittiSource:
+    """Batches from a KITTI-style folder, reshuffled each epoch from (seed, epoch).
+
+    A frame that fails to load is reported by name; with ``skip_bad`` it is replaced by the
+    next good frame of the epoch, otherwise the error stops the run at once.
+    """
+
+    def __init__(self, root, split: str, config: Config, seed: int, skip_bad: bool = False):
+        from indoorbev_jax.data.dataset import KittiDataset
+
+        self.dataset = KittiDataset(root, split, config)
+        self.batch_size = config.train.batch_size
+        if len(self.dataset) < self.batch_size:
+            raise ValueError(
+                f"{root}/{split}.txt: {len(self.dataset)} frames, fewer than "
+                f"train.batch_size={self.batch_size}"
+            )
+        self.seed = seed
+        self.skip_bad = skip_bad
+        self.bad: set[int] = set()
+
+    def _order(self, epoch: int) -> np.ndarray:
+        return np.random.default_rng([self.seed, epoch]).permutation(len(self.dataset))
+
+    def __call__(self, step: int) -> Batch:
+        from indoorbev_jax.data.dataset import collate
+        from indoorbev_jax.data.kitti import DatasetError
+
+        per_epoch = len(self.dataset) // self.batch_size
+        epoch, k = divmod(step, per_epoch)
+        order = self._order(epoch)
+        items, pos = [], k * self.batch_size
+        while len(items) < self.batch_size:
+            index = int(order[pos % len(order)])
+            pos += 1
+            if index in self.bad:
+                continue
+            try:
+                items.append(self.dataset.load(index)[0])
+            except (DatasetError, OSError) as e:
+                if not self.skip_bad:
+                    raise
+                log.warning("skipping malformed frame %s: %s", self.dataset.ids[index], e)
+                self.bad.add(index)
+                if len(self.bad) == len(self.dataset):
+                    raise DatasetError(f"{self.dataset.root}: no readable frame left") from e
+        return collate(items)
+
+
+def prefetch(source: Callable[[int], Batch], start: int, stop: int, size: int = 2) -> Iterator:
+    """Yields ``source(s)`` for s in [start, stop), computed ``size`` steps ahead on a
+    background thread; an error in the source is raised at the step it belongs to."""
+    q: queue.Queue = queue.Queue(maxsize=size)
+    done = threading.Event()
+
+    def work():
+        for s in range(start, stop):
+            if done.is_set():
+                return
+            try:
+                item = (s, source(s), None)
+            except Exception as e:  # noqa: BLE001 - handed to the consumer
+                item = (s, None, e)
+            q.put(item)
+            if item[2] is not None:
+                return
+
+    threading.Thread(target=work, daemon=True).start()
+    try:
+        for _ in range(start, stop):
+            s, batch, error = q.get()
+            if error is not None:
+                raise error
+            yield s, batch
+    finally:
+        done.set()
+
+
+# Checkpoints ------------------------------------------------------------------------------
+
+
+class Checkpoints:
+    """Orbax checkpoints: the latest ``keep`` under ``checkpoints/``, the best by a
+    validation metric under ``best/``. Restoring falls back to older checkpoints, with a
+    warning, when the latest is corrupt or partial."""
+
+    def __init__(self, workdir: Path, keep: int, metric: str = "pq"):
+        self.metric = metric
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, enable_async_checkpointing=False)
+        self.latest = ocp.CheckpointManager(
+            Path(workdir).absolute() / "checkpoints", options=options
+        )
+        best_options = ocp.CheckpointManagerOptions(
+            max_to_keep=1,
+            best_fn=lambda m: m[metric],
+            best_mode="max",
+            enable_async_checkpointing=False,
+        )
+        self.best = ocp.CheckpointManager(Path(workdir).absolute() / "best", options=best_options)
+
+    def save(self, state: TrainState) -> None:
+        step = int(state.step)
+        if step not in self.latest.all_steps():
+            self.latest.save(step, args=ocp.args.StandardSave(state))
+
+    def save_best(self, state: TrainState, metrics: dict) -> None:
+        step = int(state.step)
+        if step not in self.best.all_steps():
+            self.best.save(
+                step, args=ocp.args.StandardSave(state), metrics={self.metric: metrics[self.metric]}
+            )
+
+    def restore(self, template: TrainState) -> TrainState | None:
+        """The newest readable checkpoint, or None when there is none."""
+        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template)
+        self.latest.reload()
+        for step in sorted(self.latest.all_steps(), reverse=True):
+            try:
+                return self.latest.restore(step, args=ocp.args.StandardRestore(abstract))
+            except Exception as e:  # noqa: BLE001 - any unreadable checkpoint falls back
+                log.warning("checkpoint %d is unreadable (%s); trying an older one", step, e)
+        return None
+
+    def close(self) -> None:
+        self.latest.close()
+        self.best.close()
+
+
+# Logging ----------------------------------------------------------------------------------
+
+
+class MetricsLog:
+    """``metrics.jsonl`` plus TensorBoard; on resume, lines past the restored step go."""
+
+    def __init__(self, workdir: Path, resume_step: int):
+        self.path = Path(workdir) / "metrics.jsonl"
+        if self.path.exists():
+            kept = [
+                line
+                for line in self.path.read_text().splitlines()
+                if line.strip() and json.loads(line).get("step", 0) <= resume_step
+            ]
+            tmp = self.path.with_suffix(".tmp")
+            tmp.write_text("".join(line + "\n" for line in kept))
+            os.replace(tmp, self.path)
+        from tensorboardX import SummaryWriter
+
+        self.tb = SummaryWriter(str(Path(workdir) / "tb"), purge_step=resume_step + 1)
+
+    def write(self, step: int, kind: str, values: dict) -> None:
+        record = {"step": step, "kind": kind, **values}
+        with self.path.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+        for name, value in values.items():
+            if isinstance(value, int | float) and math.isfinite(value):
+                self.tb.add_scalar(f"{kind}/{name}", value, step)
+        self.tb.flush()
+
+    def close(self) -> None:
+        self.tb.close()
+
+
+# Evaluation -------------------------------------------------------------------------------
+
+
+def make_predict_fn(config: Config) -> Callable:
+    """Jitted ``(params, points, valid) -> PanopticOutput`` (last decoder layer)."""
+    from indoorbev_jax.inference import panoptic_inference
+
+    model = IndoorBEV(config)
+    return jax.jit(
+        lambda params, points, valid: panoptic_inference(
+            model.apply(params, points, valid), config.inference
+        )
+    )
+
+
+def evaluate(config: Config, params, batches, predict_fn=None) -> dict:
+    """All metrics of ``params`` over an iterable of ``Batch``."""
+    from indoorbev_jax.metrics import Evaluator
+
+    predict_fn = predict_fn or make_predict_fn(config)
+    evaluator = Evaluator(config.inference, class_names=config.data.class_names)
+    for batch in batches:
+        evaluator.add_output(predict_fn(params, batch.points, batch.point_valid), batch.targets)
+    return evaluator.compute()
+
+
+# The loop ---------------------------------------------------------------------------------
+
+
+def _scalars(metrics: dict) -> dict:
+    """Means over the logged window (and over sweep members, if any)."""
+    return {k: float(np.mean(np.asarray(v))) for k, v in metrics.items()}
+
+
+def make_sources(config: Config, data: str | None, seed: int, skip_bad: bool):
+    """(train source, list of validation batches) for ``data`` = None (simulator) or a
+    KITTI-style folder with ``train`` and ``val`` splits."""
+    t = config.train
+    if data is None:
+        key = jax.random.key(seed)
+        train = SimSource(config, jax.random.fold_in(key, 0))
+        val_source = SimSource(config, jax.random.fold_in(key, 1))
+        val = [val_source(k) for k in range(t.eval_batches)]
+        return train, val
+    train = KittiSource(data, "train", config, seed, skip_bad)
+    from indoorbev_jax.data.dataset import KittiDataset
+
+    val_ds = KittiDataset(data, "val", config)
+    val = list(val_ds.batches(t.batch_size, drop_remainder=False))[: t.eval_batches]
+    return train, val
+
+
+def train_and_evaluate(
+    config: Config,
+    workdir: str | os.PathLike,
+    *,
+    data: str | None = None,
+    skip_bad_frames: bool = False,
+    progress: bool = True,
+) -> TrainState:
+    """Trains ``config`` in ``workdir``, resuming from its latest readable checkpoint.
+
+    Args:
+      config: the run configuration (``config.train`` sets steps, batch size, schedule).
+      workdir: run directory (created when missing).
+      data: None to train on on-device simulated batches (``indoorbev_sim``), or a
+        KITTI-style folder with ``train.txt`` and ``val.txt``.
+      skip_bad_frames: with a folder, skip (and report) malformed frames instead of failing.
+      progress: show a progress bar.
+
+    Returns:
+      The final ``TrainState``.
+    """
+    from tqdm import tqdm
+
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    config_path = workdir / "config.json"
+    if config_path.exists() and Config.from_dict(json.loads(config_path.read_text())) != config:
+        raise ValueError(f"{config_path}: the workdir holds a run with another config")
+    tmp = config_path.with_suffix(".tmp")
+    tmp.write_text(config.to_json())
+    os.replace(tmp, config_path)
+
+    t = config.train
+    mesh = data_mesh()
+    if t.batch_size % mesh.size:
+        raise ValueError(f"train.batch_size={t.batch_size} does not split over {mesh.size} devices")
+    key = jax.random.key(t.seed)
+    state = init_state(config, jax.random.fold_in(key, 0))
+    checkpoints = Checkpoints(workdir, t.keep_checkpoints)
+    restored = checkpoints.restore(state)
+    if restored is not None:
+        state = restored
+        log.info("resumed from step %d", int(state.step))
+    start = int(state.step)
+    metrics_log = MetricsLog(workdir, start)
+    state = replicate(state, mesh)
+    hyper = replicate(Hyper.from_config(config), mesh)
+    step_key = jax.random.fold_in(key, 1)
+    train_step = jax.jit(make_train_step(config), donate_argnums=0)
+    source, val_batches = make_sources(config, data, t.seed, skip_bad_frames)
+    predict_fn = make_predict_fn(config)
+
+    bar = tqdm(total=t.total_steps, initial=start, disable=not progress, unit="step")
+    pending, window_start, window_steps = [], time.perf_counter(), 0
+    try:
+        for step, batch in prefetch(source, start, t.total_steps):
+            state, metrics = train_step(state, shard_batch(batch, mesh), step_key, hyper)
+            pending.append(metrics)
+            window_steps += 1
+            done = step + 1
+            if done % t.log_every == 0 or done == t.total_steps:
+                values = _scalars(jax.tree.map(lambda *xs: np.stack(xs), *pending))
+                values.pop("finite")
+                values["skipped_steps"] = int(state.skipped)
+                values["steps_per_s"] = window_steps / (time.perf_counter() - window_start)
+                metrics_log.write(done, "train", values)
+                if values["skipped_steps"]:
+                    log.warning("%d non-finite steps skipped so far", values["skipped_steps"])
+                bar.set_postfix(loss=f"{values['loss']:.4f}", sps=f"{values['steps_per_s']:.2f}")
+                pending, window_start, window_steps = [], time.perf_counter(), 0
+            bar.update(1)
+            if done % t.checkpoint_every == 0 or done == t.total_steps:
+                checkpoints.save(state)
+            if done % t.eval_every == 0 or done == t.total_steps:
+                results = evaluate(config, state.params, val_batches, predict_fn)
+                scalars = {k: v for k, v in results.items() if isinstance(v, int | float)}
+                scalars.update({f"ap{thr}": v for thr, v in results["ap"].items()})
+                metrics_log.write(done, "eval", scalars)
+                checkpoints.save_best(state, scalars)
+                bar.write(f"step {done}: " + ", ".join(f"{k} {v:.4f}" for k, v in scalars.items()))
+    finally:
+        bar.close()
+        metrics_log.close()
+        checkpoints.close()
+    return state
+
+
+def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config, Any]:
+    """(config, params) of a run directory's ``best`` (or ``latest``) checkpoint."""
+    workdir = Path(workdir)
+    config = Config.from_dict(json.loads((workdir / "config.json").read_text()))
+    template = init_state(config, jax.random.key(0))
+    checkpoints = Checkpoints(workdir, config.train.keep_checkpoints)
+    manager = checkpoints.best if which == "best" and checkpoints.best.all_steps() else None
+    state = None
+    if manager is not None:
+        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template)
+        state = manager.restore(manager.best_step(), args=ocp.args.StandardRestore(abstract))
+    if state is None:
+        state = checkpoints.restore(template)
+    checkpoints.close()
+    if state is None:
+        raise FileNotFoundError(f"{workdir}: no checkpoint found")
+    return config, state.params

@@ -1,0 +1,184 @@
+"""Training: non-finite steps skipped, vmapped sweeps equal separate runs, sharded equals
+single-device, checkpoints fall back past a corrupt one, and kill -9 + rerun is bitwise."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from indoorbev_jax import train as T
+from indoorbev_jax.config import Config
+from indoorbev_jax.data.dataset import KittiDataset
+from indoorbev_jax.sweep import init_sweep, make_sweep_step, stack_hypers
+
+sys.path.insert(0, str(Path(__file__).parent))
+from synthetic import write_synthetic_dataset  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+CFG = Config.tiny()
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("synthetic")
+    write_synthetic_dataset(root, frames=8)
+    return root
+
+
+@pytest.fixture(scope="module")
+def batch(data):
+    return next(KittiDataset(data, "train", CFG).batches(CFG.train.batch_size))
+
+
+@pytest.fixture(scope="module")
+def step_fn():
+    return jax.jit(T.make_train_step(CFG))
+
+
+def test_lr_schedule_warmup_then_cosine():
+    f = lambda s: float(T.lr_factor(s, 10, 110))  # noqa: E731
+    assert f(0) == 0.0 and f(5) == pytest.approx(0.5) and f(10) == pytest.approx(1.0)
+    assert f(60) == pytest.approx(0.5, abs=1e-6) and f(110) == pytest.approx(0.0, abs=1e-7)
+
+
+def test_non_finite_step_is_skipped(batch, step_fn):
+    state = T.init_state(CFG, jax.random.key(0))
+    hyper = T.Hyper.from_config(CFG)
+    good, metrics = step_fn(state, batch, jax.random.key(1), hyper)
+    assert bool(metrics["finite"]) and int(good.skipped) == 0
+    bad_hyper = hyper.replace(weights=dict(hyper.weights, dice=jnp.float32(jnp.nan)))
+    bad, metrics = step_fn(good, batch, jax.random.key(1), bad_hyper)
+    assert not bool(metrics["finite"])
+    assert int(bad.skipped) == 1 and int(bad.step) == 2
+    jax.tree.map(np.testing.assert_array_equal, bad.params, good.params)
+
+
+def test_vmapped_sweep_equals_separate_runs(batch, step_fn):
+    lrs = [1e-3, 3e-3]
+    hypers = stack_hypers(CFG, lrs, {"dice": [5.0, 1.0]})
+    states = init_sweep(CFG, 2, jax.random.key(0))
+    sweep = make_sweep_step(CFG)
+    for _ in range(2):
+        states, _ = sweep(states, batch, jax.random.key(1), hypers)
+    for k in range(2):
+        state = T.init_state(CFG, jax.random.key(0))
+        hyper = jax.tree.map(lambda x, k=k: x[k], hypers)
+        for _ in range(2):
+            state, _ = step_fn(state, batch, jax.random.key(1), hyper)
+        jax.tree.map(
+            lambda a, b, k=k: np.testing.assert_allclose(a[k], b, rtol=1e-3, atol=2e-5),
+            states.params,
+            state.params,
+        )
+
+
+def test_corrupt_latest_checkpoint_falls_back(tmp_path, caplog):
+    state = T.TrainState(
+        step=jnp.int32(0), params={"w": jnp.arange(4.0)}, opt_state=(), skipped=jnp.int32(0)
+    )
+    ckpt = T.Checkpoints(tmp_path, keep=3)
+    for step in (1, 2):
+        ckpt.save(state.replace(step=jnp.int32(step), params={"w": jnp.arange(4.0) * step}))
+    ckpt.close()
+    for f in (tmp_path / "checkpoints" / "2").rglob("*"):
+        if f.is_file():
+            f.write_bytes(b"garbage")
+    ckpt = T.Checkpoints(tmp_path, keep=3)
+    with caplog.at_level("WARNING"):
+        restored = ckpt.restore(state)
+    assert int(restored.step) == 1
+    np.testing.assert_array_equal(restored.params["w"], np.arange(4.0))
+    assert "checkpoint 2 is unreadable" in caplog.text
+
+
+SHARDED = textwrap.dedent(
+    """
+    import os, sys
+    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    import jax, jax.numpy as jnp, numpy as np
+    from indoorbev_jax import train as T
+    from indoorbev_jax.config import Config
+    from indoorbev_jax.data.dataset import KittiDataset
+    import dataclasses
+    cfg = Config.tiny()
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, batch_size=4))
+    assert jax.device_count() == 4
+    batch = next(KittiDataset(sys.argv[1], "train", cfg).batches(4))
+    state = T.init_state(cfg, jax.random.key(0))
+    step = T.make_train_step(cfg)
+    hyper = T.Hyper.from_config(cfg)
+    run = jax.jit(lambda s, b: step(s, b, jax.random.key(1), hyper))
+    single_state, single = run(state, batch)
+    mesh = T.data_mesh()
+    sharded_batch = T.shard_batch(batch, mesh)
+    assert len(sharded_batch.points.sharding.device_set) == 4
+    multi_state, multi = run(T.replicate(state, mesh), sharded_batch)
+    np.testing.assert_allclose(multi["loss"], single["loss"], rtol=1e-5)
+    np.testing.assert_allclose(multi["grad_norm"], single["grad_norm"], rtol=1e-4)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6),
+                 multi_state.params, single_state.params)
+    print("SHARDED_OK", float(single["loss"]), float(multi["loss"]))
+    """
+)
+
+
+def _env(cache):
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env["JAX_COMPILATION_CACHE_DIR"] = str(cache)
+    env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    return env
+
+
+def test_sharded_step_equals_single_device(data, tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-c", SHARDED, str(data)],
+        capture_output=True, text=True, env=_env(tmp_path / "cache"), timeout=900,
+    )  # fmt: skip
+    assert "SHARDED_OK" in out.stdout, out.stderr[-3000:]
+
+
+def _train_cmd(data, workdir):
+    return [
+        sys.executable, str(REPO / "experiments" / "train.py"), "--preset", "tiny",
+        "--workdir", str(workdir), "--data", str(data), "--steps", "6",
+        "--checkpoint-every", "2", "--eval-every", "6", "--no-progress",
+    ]  # fmt: skip
+
+
+def test_kill_and_rerun_resumes_bitwise(data, tmp_path):
+    env = _env(tmp_path / "cache")
+    full, killed = tmp_path / "full", tmp_path / "killed"
+    subprocess.run(_train_cmd(data, full), check=True, env=env, timeout=900)
+    proc = subprocess.Popen(_train_cmd(data, killed), env=env, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 600
+    while time.time() < deadline and not (killed / "checkpoints" / "2").is_dir():
+        time.sleep(0.2)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert (killed / "checkpoints" / "2").is_dir()
+    subprocess.run(_train_cmd(data, killed), check=True, env=env, timeout=900)
+
+    template = T.init_state(CFG, jax.random.key(0))
+    a = T.Checkpoints(full, 2).restore(template)
+    b = T.Checkpoints(killed, 2).restore(template)
+    assert int(a.step) == int(b.step) == 6
+    jax.tree.map(np.testing.assert_array_equal, a.params, b.params)
+    jax.tree.map(np.testing.assert_array_equal, a.opt_state, b.opt_state)
+    steps = [json.loads(line)["step"] for line in (killed / "metrics.jsonl").open()]
+    assert steps == sorted(steps) and len(steps) == len(set(steps)) + 1  # train + eval at 6
+    assert (killed / "config.json").exists() and any((killed / "tb").iterdir())
+
+
+def test_config_mismatch_in_workdir_is_an_error(tmp_path):
+    (tmp_path / "config.json").write_text(Config.small().to_json())
+    with pytest.raises(ValueError, match="config.json: the workdir holds a run"):
+        T.train_and_evaluate(CFG, tmp_path, data=str(tmp_path), progress=False)
