@@ -1,0 +1,193 @@
+"""Lidar ray-casting throughput: indoorbev_sim.lidar.cast_rays vs MuJoCo and mujoco-lidar.
+
+Scene: a 10 x 10 m room (floor plane, 4 wall boxes) with 60 furniture primitives of every
+type; sensor at the room centre, 0.5 m up. Patterns: one MID-360-like frame (20k rays), a
+360 x 64 grid, 1M random rays. Backends, all on the same scene and rays, interleaved:
+  * ours      - cast_rays inside jax.jit (Warp kernels on the CPU);
+  * mj_multiRay on two threads (the binding releases the GIL; rays split in halves);
+  * mujoco-lidar 0.3.x backends "warp" (BVH) and "taichi", if installed. They are benchmark
+    only: ``.venv/bin/pip install "mujoco-lidar[taichi]==0.3.5"`` (pulls torch).
+Prints the median time of ``--repeats`` interleaved runs, rays/s, our speed-up over the best
+other backend, and how many of our rays agree with mj_multiRay (1e-4 m, hit/miss included).
+
+Usage: JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_lidar.py [--repeats 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from indoorbev_sim import lidar, patterns
+from mujoco import mjx
+
+CUTOFF = 30.0
+SENSOR = np.array([0.0, 0.0, 0.5])
+
+
+def room_xml(seed: int = 0, n_furniture: int = 60) -> str:
+    rng = np.random.default_rng(seed)
+    body = [
+        '<geom type="plane" size="5 5 0.1"/>',
+        '<geom type="box" pos="5.05 0 1.5" size="0.05 5.1 1.5"/>',
+        '<geom type="box" pos="-5.05 0 1.5" size="0.05 5.1 1.5"/>',
+        '<geom type="box" pos="0 5.05 1.5" size="5.1 0.05 1.5"/>',
+        '<geom type="box" pos="0 -5.05 1.5" size="5.1 0.05 1.5"/>',
+        f'<site name="lidar" pos="{SENSOR[0]} {SENSOR[1]} {SENSOR[2]}"/>',
+    ]
+    types = ["box", "sphere", "capsule", "cylinder", "ellipsoid"]
+    for i in range(n_furniture):
+        t = types[i % len(types)]
+        while True:  # keep furniture off the sensor
+            xy = rng.uniform(-4.5, 4.5, 2)
+            if np.linalg.norm(xy) > 1.0:
+                break
+        size = rng.uniform(0.1, 0.6, 3)
+        yaw = rng.uniform(0, 360)
+        z = size[2] if t in ("box", "ellipsoid") else size[0] + (size[1] if t != "sphere" else 0)
+        body.append(
+            f'<geom type="{t}" pos="{xy[0]} {xy[1]} {z}" euler="0 0 {yaw}" '
+            f'size="{size[0]} {size[1]} {size[2]}"/>'
+        )
+    return (
+        '<mujoco><default><geom contype="0" conaffinity="0"/></default><worldbody>'
+        + "".join(body)
+        + "</worldbody></mujoco>"
+    )
+
+
+def ray_sets(seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    rand = rng.normal(size=(1_000_000, 3))
+    rand /= np.linalg.norm(rand, axis=1, keepdims=True)
+    return {
+        "mid360 frame": np.asarray(patterns.Mid360Pattern().frame(0).directions),
+        "grid 360x64": np.asarray(patterns.GridPattern(360, 64).frame(0).directions),
+        "random 1M": rand.astype(np.float32),
+    }
+
+
+class MultiRay2:
+    """mj_multiRay with the rays split over two threads (one MjData each)."""
+
+    def __init__(self, m, d, dirs):
+        self.m = m
+        self.halves = np.array_split(dirs.astype(np.float64), 2)
+        self.datas = [mujoco.MjData(m) for _ in self.halves]
+        for dd in self.datas:
+            dd.qpos[:] = d.qpos
+            mujoco.mj_forward(m, dd)
+        self.out = [(np.zeros(len(h), np.int32), np.zeros(len(h))) for h in self.halves]
+
+    def _run(self, i):
+        gid, dist = self.out[i]
+        h = self.halves[i]
+        mujoco.mj_multiRay(
+            self.m,
+            self.datas[i],
+            SENSOR,
+            h.reshape(-1),
+            None,
+            1,
+            -1,
+            gid,
+            dist,
+            None,
+            len(h),
+            CUTOFF,
+        )
+
+    def __call__(self):
+        threads = [threading.Thread(target=self._run, args=(i,)) for i in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        return np.concatenate([o[1] for o in self.out]), np.concatenate([o[0] for o in self.out])
+
+
+def mujoco_lidar_backends(m, d, dirs):
+    """Callables for mujoco-lidar's warp and taichi backends, or notes why unavailable."""
+    out, notes = {}, []
+    try:
+        from mujoco_lidar import MjLidarWrapper
+    except ImportError as e:
+        return out, [f"mujoco-lidar not installed ({e})"]
+    theta = np.arctan2(dirs[:, 1], dirs[:, 0]).astype(np.float32)  # azimuth
+    phi = np.arcsin(np.clip(dirs[:, 2], -1, 1)).astype(np.float32)  # elevation
+    for backend, args in (("warp", {"device": "cpu"}), ("taichi", {"ti_init_args": {}})):
+        try:
+            if backend == "taichi":
+                import taichi as ti
+
+                ti.init(arch=ti.cpu, cpu_max_num_threads=2)
+                ti._is_initialized = True
+            w = MjLidarWrapper(m, "lidar", backend=backend, cutoff_dist=CUTOFF, args=args)
+            w.trace_rays(d, theta, phi)  # compile
+            out[f"mujoco-lidar {backend}"] = lambda w=w: w.trace_rays(d, theta, phi)
+        except Exception as e:  # noqa: BLE001 - report any backend failure and go on
+            notes.append(f"mujoco-lidar {backend}: unavailable ({type(e).__name__}: {e})")
+    return out, notes
+
+
+def median_time(fn, block=lambda x: x):
+    t = time.perf_counter()
+    block(fn())
+    return time.perf_counter() - t
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--sets", default="mid360 frame,grid 360x64,random 1M")
+    args = ap.parse_args()
+
+    m = mujoco.MjModel.from_xml_string(room_xml())
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    mx, dx = mjx.put_model(m), mjx.put_data(m, d)
+    print(f"scene: {m.ngeom} geoms; {jax.device_count()} JAX device(s); repeats {args.repeats}")
+    origin = jnp.asarray(SENSOR, jnp.float32)
+    ours_fn = jax.jit(lambda mx, dx, v: lidar.cast_rays(mx, dx, origin, v, CUTOFF))
+
+    for name, dirs in ray_sets().items():
+        if name not in args.sets.split(","):
+            continue
+        dirs_j = jnp.asarray(dirs)
+        backends = {
+            "ours": lambda dirs_j=dirs_j: ours_fn(mx, dx, dirs_j),
+            "mj_multiRay x2 threads": MultiRay2(m, d, dirs),
+        }
+        ml, notes = mujoco_lidar_backends(m, d, dirs)
+        backends.update(ml)
+        t0 = time.perf_counter()
+        ours = jax.block_until_ready(backends["ours"]())
+        first = time.perf_counter() - t0
+        ref_d, ref_g = backends["mj_multiRay x2 threads"]()
+        ref_d = np.where((ref_d < 0) | (ref_d > CUTOFF), -1.0, ref_d)
+        ok = (np.abs(np.asarray(ours[0]) - ref_d) <= 1e-4) & (
+            np.asarray(ours[1]) == np.where(ref_d < 0, -1, ref_g)
+        )
+        times = {k: [] for k in backends}
+        for _ in range(args.repeats):
+            for k, fn in backends.items():
+                block = jax.block_until_ready if k == "ours" else (lambda x: x)
+                times[k].append(median_time(fn, block))
+        print(f"\n== {name}: {len(dirs)} rays (ours: first call incl. compile {first:.2f} s)")
+        for note in notes:
+            print("  " + note)
+        med = {k: float(np.median(v)) for k, v in times.items()}
+        for k, t in med.items():
+            print(f"  {k:28s} {t * 1e3:9.2f} ms  {len(dirs) / t / 1e6:8.2f} M rays/s")
+        best_other = min(t for k, t in med.items() if k != "ours")
+        print(f"  speed-up of ours over the best other backend: {best_other / med['ours']:.2f}x")
+        print(f"  agreement with mj_multiRay (1e-4 m, hit/miss, geom): {ok.mean() * 100:.4f} %")
+
+
+if __name__ == "__main__":
+    main()

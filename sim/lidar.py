@@ -1,0 +1,478 @@
+"""Lidar ray casting over MJX scenes with Warp kernels, callable inside ``jax.jit``.
+
+The public entry point is :func:`cast_rays`; it follows MuJoCo's ``mj_ray`` (a miss, or a
+hit beyond ``max_range``, gives distance -1 and geom id -1; rays starting inside a primitive
+hit its far side; planes only from the front; invisible geoms, ``geomgroup``, ``flg_static``
+and ``bodyexclude`` filter as in ``mj_ray``). Kernels live in ``_lidar_kernels.py``; see
+docs/SIMULATOR.md ("## Lidar") for the algorithm and the grazing-incidence discussion.
+
+Example:
+  >>> m = mujoco.MjModel.from_xml_string(xml)
+  >>> mx, dx = mjx.put_model(m), mjx.kinematics(mx, mjx.put_data(m, mujoco.MjData(m)))
+  >>> dist, geom = jax.jit(cast_rays)(mx, dx, jnp.zeros(3), dirs, 20.0)  # dirs [R, 3]
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import warp as wp
+from flax import struct
+
+from . import _lidar_kernels as K
+
+SUPPORTED_TYPES = {
+    int(mujoco.mjtGeom.mjGEOM_PLANE): "plane",
+    int(mujoco.mjtGeom.mjGEOM_SPHERE): "sphere",
+    int(mujoco.mjtGeom.mjGEOM_CAPSULE): "capsule",
+    int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid",
+    int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinder",
+    int(mujoco.mjtGeom.mjGEOM_BOX): "box",
+}
+_BIG = 1.0e30
+DEFAULT_CAPACITY = 16
+
+
+@struct.dataclass
+class SceneGeometry:
+    """World-frame primitives of B scenes, the kernels' view of an MJX model/data pair.
+
+    Attributes:
+      geom_type: int32 [B, G], ``mjtGeom`` ids (unsupported geoms are disabled).
+      size: float32 [B, G, 3], ``geom_size``.
+      pos: float32 [B, G, 3], ``geom_xpos``.
+      mat: float32 [B, G, 3, 3], ``geom_xmat``.
+      ext: float32 [B, G, 3], half extents of the local bounding box (1e30: unbounded).
+      rbound: float32 [B, G], bounding-sphere radius about ``pos`` (1e30: unbounded).
+      enabled: int32 [B, G], 1 for geoms that rays may hit (after all filters).
+      front: int32 [B, G], 1 for planes (hit from their +z side only).
+    """
+
+    geom_type: jax.Array
+    size: jax.Array
+    pos: jax.Array
+    mat: jax.Array
+    ext: jax.Array
+    rbound: jax.Array
+    enabled: jax.Array
+    front: jax.Array
+
+
+def _static_np(x, name: str) -> np.ndarray:
+    try:
+        return np.asarray(x)
+    except jax.errors.TracerArrayConversionError as e:
+        raise ValueError(
+            f"model.{name} must be static (a numpy array, as mjx.put_model gives); got a traced "
+            "value. Batch the model's geom_size/geom_rgba, not its structure."
+        ) from e
+
+
+def scene_geometry(
+    model,
+    data,
+    *,
+    geomgroup=None,
+    flg_static: bool = True,
+    bodyexclude: int = -1,
+    skip_unsupported: bool = False,
+) -> SceneGeometry:
+    """Collects the primitives of one scene or a batch of B scenes.
+
+    Args:
+      model: ``mjx.Model``; ``geom_size``/``geom_rgba``/``geom_matid``/``mat_rgba`` may carry a
+        leading batch axis B, ``geom_type`` and the body tables must be static (numpy).
+      data: ``mjx.Data`` after kinematics; ``geom_xpos`` of shape [G, 3] or [B, G, 3].
+      geomgroup: optional 6 flags; geoms whose group flag is 0 are skipped (as ``mj_ray``).
+      flg_static: if False, geoms on bodies welded to the world are skipped.
+      bodyexclude: geoms of this body id are skipped (-1: none).
+      skip_unsupported: skip mesh/hfield/sdf geoms instead of raising.
+
+    Returns:
+      ``SceneGeometry`` with a leading scene axis (B = 1 for an unbatched scene).
+
+    Raises:
+      ValueError: unsupported geom types present (naming them) and not skipped.
+    """
+    geom_type = _static_np(model.geom_type, "geom_type").astype(np.int32)
+    if geom_type.ndim == 2:
+        if not (geom_type == geom_type[:1]).all():
+            raise ValueError("model.geom_type differs across the batch; scenes must share it")
+        geom_type = geom_type[0]
+    ngeom = geom_type.shape[0]
+    supported = np.isin(geom_type, list(SUPPORTED_TYPES))
+    if not supported.all() and not skip_unsupported:
+        bad = [
+            f"geom {i} ({mujoco.mjtGeom(int(t)).name})"
+            for i, t in enumerate(geom_type)
+            if not supported[i]
+        ]
+        raise ValueError(
+            "cast_rays supports plane, sphere, capsule, ellipsoid, cylinder and box geoms; "
+            f"unsupported: {', '.join(bad)} (pass skip_unsupported=True to ignore them)"
+        )
+
+    # Static filters, as mj_ray's ray_eliminate.
+    bodyid = _static_np(model.geom_bodyid, "geom_bodyid").reshape(-1, ngeom)[0]
+    keep = supported & (bodyid != bodyexclude)
+    if not flg_static:
+        weld = _static_np(model.body_weldid, "body_weldid").reshape(-1, model.nbody)[0]
+        keep &= weld[bodyid] != 0
+    if geomgroup is not None:
+        flags = np.asarray(geomgroup).reshape(-1)
+        if flags.shape != (mujoco.mjNGROUP,):
+            raise ValueError(f"geomgroup must hold {mujoco.mjNGROUP} flags, got {flags.shape}")
+        group = _static_np(model.geom_group, "geom_group").reshape(-1, ngeom)[0]
+        keep &= flags[np.clip(group, 0, mujoco.mjNGROUP - 1)] != 0
+
+    pos = jnp.asarray(data.geom_xpos, jnp.float32)
+    batched = pos.ndim == 3
+    pos = pos if batched else pos[None]  # [B, G, 3]
+    nscene = pos.shape[0]
+    mat = jnp.asarray(data.geom_xmat, jnp.float32).reshape(nscene, ngeom, 3, 3)
+
+    def per_scene(x, tail):  # broadcast model fields to [B, G, *tail]
+        x = jnp.asarray(x)
+        return jnp.broadcast_to(x.reshape(-1, ngeom, *tail), (nscene, ngeom, *tail))
+
+    size = per_scene(model.geom_size, (3,)).astype(jnp.float32)
+    # Invisible geoms (alpha 0 of the geom or of its material) are skipped by mj_ray.
+    rgba_a = per_scene(model.geom_rgba, (4,))[..., 3]
+    matid = per_scene(model.geom_matid, ())
+    mat_rgba = jnp.asarray(model.mat_rgba)
+    if mat_rgba.shape[-2] > 0:
+        mat_a = jnp.broadcast_to(
+            mat_rgba.reshape(-1, *mat_rgba.shape[-2:]), (nscene,) + mat_rgba.shape[-2:]
+        )
+        mat_a = jnp.take_along_axis(mat_a[..., 3], jnp.maximum(matid, 0), axis=1)
+        alpha = jnp.where(matid >= 0, mat_a, rgba_a)
+    else:
+        alpha = rgba_a
+    enabled = (alpha != 0) & jnp.asarray(keep)[None]
+
+    gtype = jnp.broadcast_to(jnp.asarray(geom_type)[None], (nscene, ngeom))
+    ext, rbound = _bounds(geom_type, size)
+    front = jnp.broadcast_to(jnp.asarray(geom_type == 0, jnp.int32)[None], (nscene, ngeom))
+    return SceneGeometry(
+        geom_type=gtype,
+        size=size,
+        pos=pos,
+        mat=mat,
+        ext=ext,
+        rbound=rbound,
+        enabled=enabled.astype(jnp.int32),
+        front=front,
+    )
+
+
+def _bounds(geom_type: np.ndarray, size: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Local bounding-box half extents [B, G, 3] and bounding-sphere radius [B, G]."""
+    r, h = size[..., 0], size[..., 1]
+    t = jnp.asarray(geom_type)[None, :, None]
+    big = jnp.float32(_BIG)
+    plane = jnp.stack(
+        [jnp.where(r > 0, r, big), jnp.where(h > 0, h, big), jnp.zeros_like(r)], axis=-1
+    )
+    ext = jnp.select(
+        [t == 0, t == 2, t == 3, t == 5],
+        [
+            plane,
+            jnp.stack([r, r, r], -1),
+            jnp.stack([r, r, h + r], -1),
+            jnp.stack([r, r, h], -1),
+        ],
+        size,  # ellipsoid, box: size is the half extent
+    )
+    tt = t[..., 0]
+    rbound = jnp.select(
+        [tt == 2, tt == 3, tt == 4],
+        [r, r + h, jnp.max(size, axis=-1)],
+        jnp.linalg.norm(jnp.minimum(ext, 1.0e6), axis=-1),  # box, cylinder, finite plane
+    )
+    rbound = jnp.where(jnp.any(ext >= big, axis=-1), big, rbound)
+    return ext.astype(jnp.float32), rbound.astype(jnp.float32)
+
+
+# ----------------------------------------------------------------------------- cube map
+
+
+@functools.cache
+def _cube_cells(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Axis, cos and sin of the bounding cone of each of the 6 n n cube-map cells.
+
+    Cell order matches ``_lidar_kernels.dir_cell``. Returns arrays [6 n n, 3], [6 n n],
+    [6 n n] (float32).
+    """
+    edges = np.linspace(-1.0, 1.0, n + 1)
+    mid = 0.5 * (edges[:-1] + edges[1:])
+
+    def on_face(face, u, w):  # face-local (u, w) -> direction, as dir_cell inverts it
+        one = np.ones_like(u)
+        s = 1.0 if face % 2 == 0 else -1.0
+        return [
+            np.stack([s * one, u, w], -1),
+            np.stack([s * one, u, w], -1),
+            np.stack([u, s * one, w], -1),
+            np.stack([u, s * one, w], -1),
+            np.stack([u, w, s * one], -1),
+            np.stack([u, w, s * one], -1),
+        ][face]
+
+    def unit(x):
+        return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+    axes, cosb = [], []
+    for face in range(6):
+        ui, wi = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")  # [n, n]
+        axis = unit(on_face(face, mid[ui], mid[wi]))
+        worst = np.ones(ui.shape)
+        for du in (0, 1):
+            for dw in (0, 1):
+                corner = unit(on_face(face, edges[ui + du], edges[wi + dw]))
+                worst = np.minimum(worst, np.sum(axis * corner, -1))
+        axes.append(axis.reshape(-1, 3))
+        cosb.append(worst.reshape(-1))
+    axis = np.concatenate(axes)
+    # Widen each cone a little (about 1e-3 rad) so float32 cell lookups stay inside it.
+    beta = np.arccos(np.clip(np.concatenate(cosb), -1.0, 1.0)) + 1.0e-3
+    return axis.astype(np.float32), np.cos(beta).astype(np.float32), np.sin(beta).astype(np.float32)
+
+
+def default_cells_per_edge(num_rays: int) -> int:
+    """Cube-map resolution (cells per cube edge), 12 for a 20k-ray frame, 16 from ~400k rays.
+
+    Finer cells shorten each ray's candidate list but cost build time (cells x geoms); these
+    values were the fastest in experiments/bench_lidar.py's room (docs/BENCHMARKS.md).
+    """
+    return int(np.clip(round(num_rays**0.2 * 1.7), 6, 16))
+
+
+# ----------------------------------------------------------------------------- Warp bridge
+
+
+@functools.cache
+def _ffi(name: str):
+    kernel = {"brute": K.cast_brute, "build": K.build_bins, "binned": K.cast_binned}[name]
+    nout = {"brute": 2, "build": 4, "binned": 2}[name]
+    return wp.jax_kernel(kernel, num_outputs=nout)
+
+
+def _cast_impl(geo: SceneGeometry, dirs, origin, max_range, *, method, cells, capacity):
+    """All inputs batched over scenes: dirs [B, R, 3], origin [B, 3], max_range [B]."""
+    nscene, nray = dirs.shape[:2]
+    if method == "brute":
+        return _ffi("brute")(
+            geo.geom_type,
+            geo.size,
+            geo.pos,
+            geo.mat,
+            geo.rbound,
+            geo.enabled,
+            dirs,
+            origin,
+            max_range,
+            launch_dims=(nscene, nray),
+        )
+    axis, cosb, sinb = _cube_cells(cells)
+    ncell = axis.shape[0]
+
+    def bcast(x):  # shared cell table -> [B, ...]
+        return jnp.broadcast_to(jnp.asarray(x), (nscene,) + x.shape)
+
+    cand_geom, cand_t, cand_n, cand_drop = _ffi("build")(
+        geo.size,
+        geo.pos,
+        geo.mat,
+        geo.ext,
+        geo.rbound,
+        geo.enabled,
+        geo.front,
+        origin,
+        bcast(axis),
+        bcast(cosb),
+        bcast(sinb),
+        launch_dims=(nscene, ncell),
+        output_dims={
+            "cand_geom_out": (nscene, ncell, capacity),
+            "cand_t_out": (nscene, ncell, capacity),
+            "cand_n_out": (nscene, ncell),
+            "cand_drop_out": (nscene, ncell),
+        },
+    )
+    return _ffi("binned")(
+        geo.geom_type,
+        geo.size,
+        geo.pos,
+        geo.mat,
+        geo.enabled,
+        cand_geom,
+        cand_t,
+        cand_n,
+        cand_drop,
+        dirs,
+        origin,
+        max_range,
+        cells,
+        launch_dims=(nscene, nray),
+    )
+
+
+@functools.cache
+def _batched_caster(method: str, cells: int, capacity: int):
+    """A scene-batched caster whose vmap folds the mapped axis into the scene axis."""
+
+    @jax.custom_batching.custom_vmap
+    def cast(geo, dirs, origin, max_range):
+        dist, gid = _cast_impl(
+            geo, dirs, origin, max_range, method=method, cells=cells, capacity=capacity
+        )
+        return dist, gid
+
+    @cast.def_vmap
+    def _(axis_size, in_batched, geo, dirs, origin, max_range):
+        def fold(x, batched):  # [V, B, ...] -> [V * B, ...]
+            if not batched:
+                x = jnp.broadcast_to(x, (axis_size,) + x.shape)
+            return x.reshape((-1,) + x.shape[2:])
+
+        flat = jax.tree.map(fold, (geo, dirs, origin, max_range), tuple(in_batched))
+        dist, gid = cast(*flat)
+        nscene = dirs.shape[1] if in_batched[1] else dirs.shape[0]
+        unfold = lambda x: x.reshape((axis_size, nscene) + x.shape[1:])  # noqa: E731
+        return (unfold(dist), unfold(gid)), (True, True)
+
+    return cast
+
+
+def cast_geometry(
+    geo: SceneGeometry,
+    origins: jax.Array,
+    directions: jax.Array,
+    max_range,
+    *,
+    method: str = "binned",
+    cells_per_edge: int | None = None,
+    capacity: int = DEFAULT_CAPACITY,
+) -> tuple[jax.Array, jax.Array]:
+    """``cast_rays`` on a prepared ``SceneGeometry`` (B scenes); shapes as ``cast_rays``."""
+    nscene = geo.pos.shape[0]
+    origins = jnp.asarray(origins, jnp.float32)
+    directions = jnp.asarray(directions, jnp.float32)
+    if origins.shape[-1:] != (3,) or origins.ndim > 2:
+        raise ValueError(f"origins must be [3] or [B, 3], got {origins.shape}")
+    if directions.shape[-1:] != (3,) or directions.ndim not in (2, 3):
+        raise ValueError(f"directions must be [R, 3] or [B, R, 3], got {directions.shape}")
+    single = origins.ndim == 1 and directions.ndim == 2
+    if method not in ("binned", "brute"):
+        raise ValueError(f"method must be 'binned' or 'brute', got {method!r}")
+    nray = directions.shape[-2]
+    dirs = jnp.broadcast_to(directions.reshape(-1, nray, 3), (nscene, nray, 3))
+    origin = jnp.broadcast_to(origins.reshape(-1, 3), (nscene, 3))
+    mr = jnp.broadcast_to(jnp.asarray(max_range, jnp.float32).reshape(-1), (nscene,))
+    cells = default_cells_per_edge(nray) if cells_per_edge is None else int(cells_per_edge)
+    dist, gid = _batched_caster(method, cells, int(capacity))(geo, dirs, origin, mr)
+    if single and nscene == 1:
+        return dist[0], gid[0]
+    return dist, gid
+
+
+def cast_rays(
+    model,
+    data,
+    origins: jax.Array,
+    directions: jax.Array,
+    max_range,
+    *,
+    geomgroup=None,
+    flg_static: bool = True,
+    bodyexclude: int = -1,
+    skip_unsupported: bool = False,
+    method: str = "binned",
+    cells_per_edge: int | None = None,
+    capacity: int = DEFAULT_CAPACITY,
+) -> tuple[jax.Array, jax.Array]:
+    """Casts rays from one origin per scene against MJX primitives, like ``mj_ray``.
+
+    Works inside ``jax.jit`` and under ``jax.vmap`` (a vmapped call runs as one batched
+    kernel launch). Geometry is read from ``data.geom_xpos``/``geom_xmat`` (run kinematics
+    first) and ``model.geom_size``; moving mocap bodies need nothing but new kinematics.
+
+    Args:
+      model: ``mjx.Model`` (one scene; or geom_size etc. batched over B scenes).
+      data: ``mjx.Data`` of one scene (``geom_xpos`` [G, 3]) or B scenes ([B, G, 3]).
+      origins: float [3] or [B, 3], world frame.
+      directions: float [R, 3] or [B, R, 3], unit vectors, world frame.
+      max_range: float scalar or [B]; hits farther than this count as misses.
+      geomgroup: optional 6 flags (``mj_ray``'s geomgroup); None includes every group.
+      flg_static: include geoms of bodies welded to the world (``mj_ray``'s flg_static).
+      bodyexclude: body id whose geoms are ignored (-1: none).
+      skip_unsupported: ignore mesh/hfield/sdf geoms instead of raising ValueError.
+      method: "binned" (cube-map culling, default) or "brute" (every geom per ray).
+      cells_per_edge: cube-map resolution (static); default from R.
+      capacity: candidate list length per cell (static); overflowing cells stay exact.
+
+    Returns:
+      distance: float32 [R] or [B, R], along the ray (in units of |direction|), -1 on a miss.
+      geom_id: int32 [R] or [B, R], the hit geom, -1 on a miss.
+    """
+    geo = scene_geometry(
+        model,
+        data,
+        geomgroup=geomgroup,
+        flg_static=flg_static,
+        bodyexclude=bodyexclude,
+        skip_unsupported=skip_unsupported,
+    )
+    return cast_geometry(
+        geo,
+        origins,
+        directions,
+        max_range,
+        method=method,
+        cells_per_edge=cells_per_edge,
+        capacity=capacity,
+    )
+
+
+def surface_normals(geo: SceneGeometry, points: jax.Array, geom_id: jax.Array) -> jax.Array:
+    """Outward unit normals of the hit primitives at world points.
+
+    Args:
+      geo: ``SceneGeometry`` of B scenes.
+      points: float [B, R, 3] hit points (world frame).
+      geom_id: int [B, R] hit geoms (-1: miss; the normal is then arbitrary but finite).
+
+    Returns:
+      float32 [B, R, 3] world-frame unit normals.
+    """
+    g = jnp.maximum(geom_id, 0)
+    take = lambda x: jnp.take_along_axis(x, g.reshape(g.shape + (1,) * (x.ndim - 2)), axis=1)  # noqa: E731
+    gtype = jnp.take_along_axis(geo.geom_type, g, axis=1)  # [B, R]
+    size = take(geo.size)  # [B, R, 3]
+    pos = take(geo.pos)  # [B, R, 3]
+    mat = take(geo.mat)  # [B, R, 3, 3]
+    p = jnp.einsum("brji,brj->bri", mat, points - pos)  # local frame
+    r, h = size[..., 0:1], size[..., 1:2]
+    eps = 1e-12
+    ez = jnp.zeros_like(p).at[..., 2].set(1.0)
+    sphere = p
+    ellipsoid = p / jnp.maximum(size**2, eps)
+    axis_ix = jnp.argmax(jnp.abs(p) / jnp.maximum(size, eps), axis=-1)
+    box = jax.nn.one_hot(axis_ix, 3) * jnp.sign(p)
+    radial = p.at[..., 2].set(0.0)
+    rad_len = jnp.linalg.norm(radial, axis=-1, keepdims=True)
+    on_cap = (h - jnp.abs(p[..., 2:3])) < (r - rad_len)
+    cylinder = jnp.where(on_cap, ez * jnp.sign(p[..., 2:3]), radial)
+    capsule = p - ez * jnp.clip(p[..., 2:3], -h, h)
+    t = gtype[..., None]
+    n = jnp.select(
+        [t == 0, t == 2, t == 3, t == 4, t == 5],
+        [ez, sphere, capsule, ellipsoid, cylinder],
+        box,
+    )
+    n = n / jnp.maximum(jnp.linalg.norm(n, axis=-1, keepdims=True), eps)
+    return jnp.einsum("brij,brj->bri", mat, n)

@@ -1,0 +1,104 @@
+"""Scan patterns: field of view, rates, purity in k, non-repetitive coverage, presets."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from indoorbev_sim import patterns
+
+
+def az_el_deg(dirs):
+    d = np.asarray(dirs, np.float64)
+    return np.degrees(np.arctan2(d[:, 1], d[:, 0])), np.degrees(np.arcsin(np.clip(d[:, 2], -1, 1)))
+
+
+MID = patterns.Mid360Pattern()
+_mid_frame = jax.jit(MID.frame)
+
+
+def test_mid360_spec_fov_rate_and_times():
+    f = _mid_frame(7)
+    assert f.directions.shape == (20_000, 3) and MID.num_rays == 20_000  # 200k pts/s at 10 Hz
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(f.directions), axis=1), 1.0, atol=1e-5)
+    az, el = az_el_deg(f.directions)
+    assert el.min() >= -7.0 - 1e-3 and el.max() <= 52.0 + 1e-3
+    assert el.min() < -6.5 and el.max() > 51.5  # the whole vertical FOV is used
+    hist, _ = np.histogram(az, bins=36, range=(-180, 180))
+    assert hist.min() > 0.8 * hist.mean()  # 360 deg horizontal, evenly
+    t = np.asarray(f.time_offsets)
+    assert t.min() == 0.0 and t.max() < 0.1 and np.all(np.diff(t) >= 0)  # within one 10 Hz frame
+    np.testing.assert_allclose(float(f.start_time), 0.7, rtol=1e-6)
+
+
+def test_frames_are_pure_functions_of_k():
+    a, b = _mid_frame(12345), _mid_frame(jnp.int32(12345))
+    np.testing.assert_array_equal(np.asarray(a.directions), np.asarray(b.directions))
+    # Eager and jitted evaluation agree up to float32 rounding of fused ops.
+    np.testing.assert_allclose(
+        np.asarray(MID.frame(12345).directions), np.asarray(a.directions), atol=1e-6
+    )
+    assert not np.allclose(np.asarray(_mid_frame(12346).directions), np.asarray(a.directions))
+
+
+def coverage(frames, n_az=180, n_el=40):
+    """Fraction of (azimuth, sin elevation) cells of the FOV hit by the union of frames."""
+    hit = np.zeros((n_az, n_el), bool)
+    s_lo, s_hi = np.sin(np.radians(-7.0)), np.sin(np.radians(52.0))
+    for f in frames:
+        az, el = az_el_deg(f.directions)
+        i = np.clip(((az + 180) / 360 * n_az).astype(int), 0, n_az - 1)
+        j = np.clip(
+            ((np.sin(np.radians(el)) - s_lo) / (s_hi - s_lo) * n_el).astype(int), 0, n_el - 1
+        )
+        hit[i, j] = True
+    return hit.mean()
+
+
+def test_mid360_coverage_keeps_filling_over_frames():
+    """Non-repetitive: more frames cover strictly more of the field of view, towards all of it.
+
+    A fine 720 x 160 cell grid (more cells than one frame's rays) is used so one frame cannot
+    cover it; a repetitive pattern would stay at the single-frame value.
+    """
+    frames = [_mid_frame(k) for k in range(10)]
+    c1 = coverage(frames[:1], 720, 160)
+    c3 = coverage(frames[:3], 720, 160)
+    c10 = coverage(frames, 720, 160)
+    assert c1 < 0.2 and c1 < c3 < c10
+    assert c10 > 0.75
+
+
+def test_spinning_presets():
+    vlp = patterns.SpinningPattern.vlp16()
+    f = vlp.frame(3)
+    assert f.directions.shape == (1800 * 16, 3)
+    _, el = az_el_deg(f.directions)
+    np.testing.assert_allclose(np.unique(np.round(el, 4)), np.arange(-15, 16, 2), atol=1e-3)
+    t = np.asarray(f.time_offsets)
+    assert t.max() < 0.1 and np.all(np.diff(t) >= 0)
+    os128 = patterns.SpinningPattern.os128()
+    _, el = az_el_deg(os128.frame(0).directions)
+    assert os128.num_rays == 128 * 1024 and len(np.unique(np.round(el, 3))) == 128
+    assert abs(el.min() + 22.5) < 1e-3 and abs(el.max() - 22.5) < 1e-3
+    # A spinner repeats: frame k only moves its start time.
+    np.testing.assert_array_equal(np.asarray(vlp.frame(0).directions), np.asarray(f.directions))
+    np.testing.assert_allclose(float(f.start_time), 0.3, rtol=1e-6)
+
+
+def test_grid_pattern_matches_numpy():
+    g = patterns.GridPattern(8, 3, -90, 90, -10, 10)
+    az, el = az_el_deg(g.frame(0).directions)
+    np.testing.assert_allclose(az.reshape(8, 3)[:, 0], np.linspace(-90, 90, 8), atol=1e-4)
+    np.testing.assert_allclose(el.reshape(8, 3)[0], [-10, 0, 10], atol=1e-4)
+    full = patterns.GridPattern(360, 2)
+    az, _ = az_el_deg(full.frame(0).directions)
+    assert len(np.unique(np.round(az, 3))) == 360  # no duplicated seam column
+
+
+def test_bad_patterns_raise_naming_the_field():
+    with pytest.raises(ValueError, match="points_per_second"):
+        patterns.Mid360Pattern(points_per_second=200_001)
+    with pytest.raises(ValueError, match="elevations_deg"):
+        patterns.SpinningPattern(())
+    with pytest.raises(ValueError, match="azimuth_steps"):
+        patterns.GridPattern(0, 4)

@@ -1,0 +1,114 @@
+"""Sensor model: sensor-frame points, validity, noise/dropout statistics, intensity."""
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from indoorbev_sim import sensor
+from mujoco import mjx
+from scipy.spatial.transform import Rotation
+
+XML = """<mujoco><default><geom contype="0" conaffinity="0"/></default><worldbody>
+  <geom type="plane" size="0 0 1"/>
+  <geom type="box" pos="4 0 1" size="0.1 3 1"/>
+  <geom type="sphere" pos="-3 0 1" size="0.5"/>
+  <site name="lidar" pos="0.5 0.2 1.0" euler="0 0 30"/>
+</worldbody></mujoco>"""
+
+
+# One jitted scan for all tests: eager calls would compile every small op separately.
+_scan = jax.jit(sensor.scan, static_argnames="config")
+
+
+@pytest.fixture(scope="module")
+def scene():
+    m = mujoco.MjModel.from_xml_string(XML)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    return m, d, mjx.put_model(m), mjx.put_data(m, d)
+
+
+def unit_rays(n, seed=0):
+    v = np.random.default_rng(seed).normal(size=(n, 3))
+    return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+
+def test_points_are_hits_in_the_sensor_frame(scene):
+    """Noise-free points, mapped back to the world with the site pose, match mj_ray hits."""
+    m, d, mx, dx = scene
+    pose = sensor.pose_from_site(dx, 0)
+    dirs = unit_rays(4000)
+    cfg = sensor.SensorConfig(range_noise_std=0.0, min_range=0.0, max_range=20.0)
+    s = _scan(mx, dx, pose, dirs, jax.random.key(0), cfg)
+    assert s.points.shape == (4000, 4) and s.valid.dtype == jnp.bool_
+    rot = d.site_xmat[0].reshape(3, 3)
+    np.testing.assert_allclose(np.asarray(pose.rot), rot, atol=1e-6)
+    world_dirs = dirs @ rot.T
+    gid = np.zeros(1, np.int32)
+    ref = np.array([mujoco.mj_ray(m, d, d.site_xpos[0], v, None, 1, -1, gid) for v in world_dirs])
+    ref_valid = (ref >= 0) & (ref <= 20.0)
+    np.testing.assert_array_equal(np.asarray(s.valid), ref_valid)
+    pts = np.asarray(s.points)[ref_valid]
+    np.testing.assert_allclose(pts[:, :3], dirs[ref_valid] * ref[ref_valid, None], atol=2e-4)
+    assert np.all(np.asarray(s.points)[~ref_valid] == 0)
+
+
+def test_noise_dropout_and_range_limits(scene):
+    m, d, mx, dx = scene
+    pose = sensor.Pose(jnp.array([0.0, 0.0, 1.0]), jnp.eye(3))
+    # Rays that all hit the wall at x = 3.9: noise and dropout statistics are checkable.
+    dirs = np.tile(np.array([[1.0, 0.0, 0.0]], np.float32), (20000, 1))
+    cfg = sensor.SensorConfig(range_noise_std=0.05, dropout_prob=0.25)
+
+    def run(key):
+        return _scan(mx, dx, pose, dirs, key, cfg)
+
+    s = run(jax.random.key(1))
+    valid = np.asarray(s.valid)
+    assert abs(valid.mean() - 0.75) < 0.02  # dropout rate
+    rng = np.asarray(s.points)[valid, 0]
+    assert abs(rng.mean() - 3.9) < 0.003 and abs(rng.std() - 0.05) < 0.003
+    # Same key, same scan; another key, another scan.
+    np.testing.assert_array_equal(np.asarray(run(jax.random.key(1)).points), np.asarray(s.points))
+    assert not np.array_equal(np.asarray(run(jax.random.key(2)).points), np.asarray(s.points))
+    # Range limits: the wall lies beyond max_range 3 m, and inside min_range 5 m.
+    for c in (sensor.SensorConfig(max_range=3.0), sensor.SensorConfig(min_range=5.0, max_range=9)):
+        assert not np.any(np.asarray(_scan(mx, dx, pose, dirs, jax.random.key(0), c).valid))
+
+
+def test_intensity_from_reflectivity_and_incidence(scene):
+    """Intensity = reflectivity * cos(incidence) on the floor plane (normal +z)."""
+    m, d, mx, dx = scene
+    pose = sensor.Pose(jnp.array([0.0, 0.0, 1.0]), jnp.eye(3))
+    el = np.radians(np.array([-80.0, -60.0, -30.0, -20.0]))
+    dirs = np.stack([np.cos(el), np.zeros(4), np.sin(el)], -1).astype(np.float32)
+    refl = jnp.array([0.8, 0.3, 0.3])
+    cfg = sensor.SensorConfig(range_noise_std=0.0)
+    s = _scan(mx, dx, pose, dirs, jax.random.key(0), cfg, reflectivity=refl)
+    np.testing.assert_array_equal(np.asarray(s.geom_id), 0)
+    np.testing.assert_allclose(np.asarray(s.points[:, 3]), 0.8 * np.abs(np.sin(el)), atol=1e-5)
+
+
+def test_batched_scenes_and_poses(scene):
+    """B scenes with B poses in one call equal B single calls."""
+    m, d, mx, dx = scene
+    dxb = jax.tree.map(lambda x: jnp.stack([x, x]), dx)
+    rots = Rotation.from_euler("z", [[0.0], [90.0]], degrees=True).as_matrix().astype(np.float32)
+    pose = sensor.Pose(jnp.array([[0.0, 0.0, 1.0], [1.0, 0.5, 0.8]]), jnp.asarray(rots))
+    dirs = unit_rays(2000, 1)
+    cfg = sensor.SensorConfig(range_noise_std=0.0)
+    sb = _scan(mx, dxb, pose, dirs, jax.random.key(0), cfg)
+    assert sb.points.shape == (2, 2000, 4)
+    for b in range(2):
+        pb = sensor.Pose(pose.pos[b], pose.rot[b])
+        s1 = _scan(mx, dx, pb, dirs, jax.random.key(0), cfg)
+        np.testing.assert_array_equal(np.asarray(sb.valid[b]), np.asarray(s1.valid))
+        np.testing.assert_allclose(np.asarray(sb.points[b]), np.asarray(s1.points), atol=1e-5)
+
+
+def test_bad_config_names_the_field():
+    with pytest.raises(ValueError, match="dropout_prob"):
+        sensor.SensorConfig(dropout_prob=1.5)
+    with pytest.raises(ValueError, match="min_range"):
+        sensor.SensorConfig(min_range=5.0, max_range=1.0)
