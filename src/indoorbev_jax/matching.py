@@ -1,0 +1,108 @@
+"""Exact bipartite matching of queries to targets inside ``jax.jit`` (DESIGN section 8).
+
+The solver is ``optax.assignment.hungarian_algorithm``, a pure-JAX exact linear sum
+assignment solver (no host callback), so matching runs inside the jitted train step and
+vmaps over the batch. This module only prepares its input: padded targets, non-finite
+costs, dtype and gradients.
+
+Example::
+
+    cost = jnp.array([[[0.9, 0.1], [0.2, 0.8], [0.5, 0.5]]])  # [B=1, Q=3, M=2]
+    valid = jnp.array([[True, True]])
+    query_idx, target_idx = match(cost, valid)  # [[1, 0]], [[0, 1]]
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import optax
+
+# Non-finite costs become +-COST_CAP and finite ones are clipped to it. The solver adds and
+# subtracts costs to update dual potentials: inf - inf would give NaN and an assignment made
+# of garbage, so every entry must be finite. 1e5 is far above any cost the loss produces for
+# a sane network (each term is O(1)-O(100)) while keeping float32 potentials precise
+# (spacing 0.008 at 1e5).
+COST_CAP = 1e5
+
+# The solver sees a [M, Q + M] matrix: targets as rows, the Q queries, then M private
+# "dummy" columns. A padded target costs the same constant on every query (so it cannot
+# change which queries the valid targets get) and less on its own dummy column, which it
+# therefore takes at once; valid targets pay _DUMMY_COST > COST_CAP on dummies and never
+# take one. Without the dummies a padded target competes with every other for the queries
+# and, all its costs tied, walks long augmenting paths: 16 frames of 30 x 30 with 5-15
+# valid targets solve 3.4-4.2x faster with them, full frames 1.4-3x slower (wider matrix;
+# docs/BENCHMARKS.md).
+_PAD_QUERY_COST = 2.0
+_DUMMY_COST = 3.0 * COST_CAP
+
+
+def clean_cost(cost: jax.Array) -> jax.Array:
+    """The cost with every entry finite, as the solver sees it.
+
+    Args:
+      cost: [..., Q, M] matching costs, any float dtype, may hold NaN or +-Inf.
+
+    Returns:
+      float32 of the same shape: NaN and +Inf become ``COST_CAP`` (a pair to avoid), -Inf
+      becomes ``-COST_CAP``, finite values are clipped to [-COST_CAP, COST_CAP].
+    """
+    cost = jnp.nan_to_num(cost.astype(jnp.float32), nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP)
+    return jnp.clip(cost, -COST_CAP, COST_CAP)
+
+
+def _match_one(cost: jax.Array, valid: jax.Array) -> jax.Array:
+    """Query index of each target of one frame: cost [Q, M] (clean), valid [M] -> int32 [M]."""
+    q, m = cost.shape
+    real = jnp.where(valid[:, None], cost.T, _PAD_QUERY_COST)  # [M, Q]
+    dummy = jnp.where(valid[:, None], _DUMMY_COST, 1.0 - jnp.eye(m))  # [M, M]
+    rows, cols = optax.assignment.hungarian_algorithm(jnp.concatenate([real, dummy], axis=1))
+    # Every row (target) is assigned; the solver lists them in its own order.
+    col = jnp.zeros(m, jnp.int32).at[rows].set(cols.astype(jnp.int32))  # [M], dummies >= Q
+    # Padded targets sit on dummies: hand them the unused queries in order, so the result
+    # stays a set of distinct, in-range query indices.
+    used = jnp.zeros(q, bool).at[jnp.where(valid, col, q)].set(True, mode="drop")  # [Q]
+    unused = jnp.argsort(used, stable=True).astype(jnp.int32)  # unused queries first
+    pad_rank = jnp.cumsum(~valid) - 1  # [M]
+    return jnp.where(valid, col, unused[jnp.clip(pad_rank, 0, q - 1)])
+
+
+def match(cost: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Optimal one-to-one assignment of targets to queries, batched over frames.
+
+    Minimises the summed cost of the valid targets, each getting a distinct query; the total
+    equals that of ``scipy.optimize.linear_sum_assignment(cost[b][:, valid[b]])`` (ties may
+    pick different indices with the same total). No gradient flows through the result.
+
+    Args:
+      cost: [B, Q, M] cost of giving target j to query q. NaN/Inf entries are allowed: they
+        are treated as very expensive (see ``clean_cost``), never as an error. Entries of
+        padded targets are ignored.
+      valid: bool [B, M], which targets are real.
+
+    Returns:
+      ``(query_idx, target_idx)``, int32 [B, M] each, sorted by target: ``target_idx[b] =
+      0..M-1`` and ``query_idx[b, j]`` is the query matched to target j. Entries of padded
+      targets hold distinct leftover queries and carry no meaning.
+
+    Raises:
+      ValueError: when shapes disagree or M > Q (some target could not be matched).
+    """
+    if cost.ndim != 3:
+        raise ValueError(f"match: cost must be [B, Q, M], got shape {cost.shape}")
+    b, q, m = cost.shape
+    if valid.shape != (b, m):
+        raise ValueError(
+            f"match: valid must be [B, M] = {(b, m)} to fit cost {cost.shape}, got {valid.shape}"
+        )
+    if m > q:
+        raise ValueError(f"match: {m} targets cannot all be matched to {q} queries ({cost.shape})")
+    # The solver's while loops are not reverse-differentiable and the indices are piecewise
+    # constant anyway: stopping the gradient here keeps jax.grad of the loss well defined.
+    cost = jax.lax.stop_gradient(clean_cost(cost))
+    if m == 0:
+        empty = jnp.zeros((b, 0), jnp.int32)
+        return empty, empty
+    query_idx = jax.vmap(_match_one)(cost, valid.astype(bool))  # [B, M]
+    target_idx = jnp.broadcast_to(jnp.arange(m, dtype=jnp.int32), (b, m))
+    return query_idx, target_idx

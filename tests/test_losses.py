@@ -1,0 +1,332 @@
+"""losses.set_loss / cost_matrix against a numpy + scipy re-derivation, and invariants."""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import linear_sum_assignment
+
+from indoorbev_jax.config import LossConfig
+from indoorbev_jax.losses import TERMS, cost_matrix, set_loss
+from indoorbev_jax.types import Predictions, Targets
+
+L, B, Q, K, M, H, W = 2, 4, 6, 10, 4, 16, 16
+CFG = LossConfig()
+SAMPLED = dataclasses.replace(CFG, num_mask_points=64)
+WEIGHTS = CFG.weights()
+
+# One compiled loss-and-gradient per config, shared by the tests (compiles dominate runtime).
+_loss_and_grad = jax.jit(
+    jax.value_and_grad(lambda p, t, w, c, k: set_loss(p, t, w, c, key=k), has_aux=True),
+    static_argnums=3,
+)
+_cost = jax.jit(cost_matrix, static_argnames="config")
+
+
+def _loss(preds, targets, weights=WEIGHTS, config=CFG, key=None):
+    """(total, parts, gradients w.r.t. the predictions)."""
+    (total, parts), grads = _loss_and_grad(preds, targets, weights, config, key)
+    return total, parts, grads
+
+
+def _random_batch(seed, valid=None):
+    rng = np.random.default_rng(seed)
+    preds = Predictions(
+        logits=rng.normal(size=(L, B, Q, K)).astype(np.float32),
+        dims=rng.random((L, B, Q, 3)).astype(np.float32),
+        pos=rng.normal(size=(L, B, Q, 3)).astype(np.float32),
+        yaw=rng.uniform(-4, 4, (L, B, Q, 1)).astype(np.float32),
+        masks=(2 * rng.normal(size=(L, B, Q, H, W))).astype(np.float32),
+    )
+    if valid is None:
+        valid = rng.random((B, M)) < 0.6
+        valid[0] = False  # one frame without targets
+        valid[1] = True  # one full frame
+    targets = Targets(
+        classes=np.where(valid, rng.integers(0, K - 1, (B, M)), K - 1).astype(np.int32),
+        dims=rng.random((B, M, 3)).astype(np.float32),
+        pos=rng.normal(size=(B, M, 3)).astype(np.float32),
+        yaw=rng.uniform(-math.pi, math.pi, (B, M)).astype(np.float32),
+        valid=valid,
+        masks=rng.random((B, M, H, W)) < 0.3,
+        instance_ids=np.zeros((B, H, W), np.int32),
+    )
+    return preds, targets
+
+
+# --- numpy reference -------------------------------------------------------------------
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def _sigmoid(x):
+    return 1 / (1 + np.exp(-x))
+
+
+def _focal(x, t, alpha, gamma):
+    """Elementwise sigmoid focal loss, straight from its definition."""
+    p = _sigmoid(x)
+    ce = -(t * np.log(p) + (1 - t) * np.log(1 - p))
+    p_t = p * t + (1 - p) * (1 - t)
+    return (alpha * t + (1 - alpha) * (1 - t)) * (1 - p_t) ** gamma * ce
+
+
+def _dice(x, t):
+    p = _sigmoid(x)
+    return 1 - (2 * (p * t).sum() + 1) / (p.sum() + t.sum() + 1)
+
+
+def _ref_cost(preds, targets, lyr, b, cfg):
+    logits = preds.logits[lyr, b].astype(np.float64)
+    prob = np.exp(logits) / np.exp(logits).sum(-1, keepdims=True)
+    cost = np.zeros((Q, M))
+    for q in range(Q):
+        x = preds.masks[lyr, b, q].astype(np.float64).ravel()
+        for j in range(M):
+            t = targets.masks[b, j].ravel().astype(np.float64)
+            reg = (
+                np.abs(preds.dims[lyr, b, q] - targets.dims[b, j]).sum()
+                + np.abs(preds.pos[lyr, b, q] - targets.pos[b, j]).sum()
+                + abs(_wrap(preds.yaw[lyr, b, q, 0] - targets.yaw[b, j]))
+            )
+            cost[q, j] = (
+                cfg.cost_cls * (1 - prob[q, targets.classes[b, j]])
+                + cfg.cost_dice * _dice(x, t)
+                + cfg.cost_focal * _focal(x, t, cfg.focal_alpha, cfg.focal_gamma).mean()
+                + cfg.cost_reg * reg
+            )
+    return cost
+
+
+def _ref_loss(preds, targets, weights, cfg):
+    """Per layer, per frame: scipy matching, then the loss terms summed and normalised."""
+    n = max(targets.valid.sum(), 1)
+    per_layer = {t: np.zeros(L) for t in TERMS}
+    for lyr in range(L):
+        ce_sum = w_sum = 0.0
+        for b in range(B):
+            valid = np.flatnonzero(targets.valid[b])
+            rows, cols = linear_sum_assignment(_ref_cost(preds, targets, lyr, b, cfg)[:, valid])
+            tgt_cls = np.full(Q, K - 1)
+            tgt_cls[rows] = targets.classes[b, valid[cols]]
+            logits = preds.logits[lyr, b].astype(np.float64)
+            logp = logits - np.log(np.exp(logits).sum(-1, keepdims=True))
+            w = np.where(tgt_cls == K - 1, cfg.background_weight, 1.0)
+            ce_sum += (w * -logp[np.arange(Q), tgt_cls]).sum()
+            w_sum += w.sum()
+            for q, j in zip(rows, valid[cols], strict=True):
+                x = preds.masks[lyr, b, q].astype(np.float64).ravel()
+                t = targets.masks[b, j].ravel().astype(np.float64)
+                per_layer["dice"][lyr] += _dice(x, t) / n
+                focal = _focal(x, t, cfg.focal_alpha, cfg.focal_gamma).mean()
+                per_layer["focal"][lyr] += focal / n
+                per_layer["dims"][lyr] += (
+                    np.abs(preds.dims[lyr, b, q] - targets.dims[b, j]).sum() / n
+                )
+                per_layer["pos"][lyr] += np.abs(preds.pos[lyr, b, q] - targets.pos[b, j]).sum() / n
+                per_layer["yaw"][lyr] += abs(_wrap(preds.yaw[lyr, b, q, 0] - targets.yaw[b, j])) / n
+        per_layer["cls"][lyr] = ce_sum / w_sum
+    total = sum(weights[t] * per_layer[t].sum() for t in TERMS)
+    return total, per_layer
+
+
+@pytest.fixture(scope="module")
+def batch():
+    return _random_batch(0)
+
+
+# --- tests -----------------------------------------------------------------------------
+
+
+def test_cost_matrix_matches_reference(batch):
+    preds, targets = batch
+    cost = np.asarray(_cost(preds, targets, config=CFG))
+    assert cost.shape == (L, B, Q, M)
+    for lyr in range(L):
+        for b in range(B):
+            ref = _ref_cost(preds, targets, lyr, b, CFG)
+            np.testing.assert_allclose(cost[lyr, b], ref, rtol=1e-4, atol=1e-4)
+
+
+def test_loss_matches_per_sample_reference(batch):
+    """The vmapped (layers x frames) loss equals a per-layer, per-frame numpy/scipy loop."""
+    preds, targets = batch
+    total, parts, _ = _loss(preds, targets)
+    ref_total, ref_layers = _ref_loss(preds, targets, WEIGHTS, CFG)
+    np.testing.assert_allclose(total, ref_total, rtol=1e-4)
+    for t in TERMS:
+        np.testing.assert_allclose(parts[t], ref_layers[t].sum(), rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(parts[t + "_final"], ref_layers[t][-1], rtol=1e-4, atol=1e-6)
+    assert parts["num_targets"] == targets.valid.sum()
+    weighted = sum(WEIGHTS[t] * parts[t] for t in TERMS)
+    np.testing.assert_allclose(total, weighted, rtol=1e-6)
+
+
+def test_invariant_to_permuting_queries_and_targets(batch):
+    preds, targets = batch
+    rng = np.random.default_rng(3)
+    perm_q, perm_m = rng.permutation(Q), rng.permutation(M)
+    permuted_preds = jax.tree.map(lambda x: x[:, :, perm_q], preds)
+    permuted_targets = dataclasses.replace(
+        targets, **{f: getattr(targets, f)[:, perm_m] for f in ("classes", "dims", "pos", "yaw")}
+    )
+    permuted_targets = dataclasses.replace(
+        permuted_targets, valid=targets.valid[:, perm_m], masks=targets.masks[:, perm_m]
+    )
+    total, parts, grads = _loss(preds, targets)
+    grads_by_perm = {}
+    for name_p, p, t in (("q", permuted_preds, targets), ("m", preds, permuted_targets)):
+        total_p, parts_p, grads_by_perm[name_p] = _loss(p, t)
+        np.testing.assert_allclose(total_p, total, rtol=1e-5)
+        for name in parts:
+            np.testing.assert_allclose(parts_p[name], parts[name], rtol=1e-5, atol=1e-7)
+    # Gradients follow the queries they belong to, and ignore the order of the targets.
+    unpermuted = jax.tree.map(lambda g: np.asarray(g)[:, :, np.argsort(perm_q)], grads_by_perm["q"])
+    for grads_p in (unpermuted, grads_by_perm["m"]):
+        for g_p, g in zip(jax.tree.leaves(grads_p), jax.tree.leaves(grads), strict=True):
+            np.testing.assert_allclose(g_p, g, rtol=1e-4, atol=1e-7)
+
+
+def test_vmapped_sweep_equals_loop():
+    """K models with traced loss weights under jax.vmap equal K separate calls."""
+    sweeps = [_random_batch(10 + i) for i in range(3)]
+    preds = jax.tree.map(lambda *x: np.stack(x), *[s[0] for s in sweeps])
+    targets = jax.tree.map(lambda *x: np.stack(x), *[s[1] for s in sweeps])
+    weights = {t: jnp.array([1.0, 2.0, 0.5]) * v for t, v in WEIGHTS.items()}
+    weights["background"] = jnp.array([0.1, 0.2, 0.05])
+    totals, parts = jax.jit(jax.vmap(lambda p, t, w: set_loss(p, t, w, CFG)))(
+        preds, targets, weights
+    )
+    for i, (p, t) in enumerate(sweeps):
+        w = {name: float(v[i]) for name, v in weights.items()}
+        cfg = dataclasses.replace(CFG, background_weight=w.pop("background"))
+        ref_total, ref_layers = _ref_loss(p, t, w, cfg)
+        np.testing.assert_allclose(totals[i], ref_total, rtol=1e-4)
+        np.testing.assert_allclose(parts["cls"][i], ref_layers["cls"].sum(), rtol=1e-4)
+
+
+def test_sharded_shares_sum_to_whole_batch(batch):
+    """With axis_name, the shards' losses add up to the unsharded loss (psum-ed counts)."""
+    preds, targets = batch
+    shards = 2
+
+    def split(x, axis):  # [.., B, ..] -> [S, .., B/S, ..]
+        x = np.moveaxis(x, axis, 0).reshape(shards, B // shards, *np.delete(x.shape, axis))
+        return np.moveaxis(x, 1, axis + 1)
+
+    sharded_preds = jax.tree.map(lambda x: split(x, 1), preds)
+    sharded_targets = jax.tree.map(lambda x: split(x, 0), targets)
+    per_shard = jax.vmap(
+        lambda p, t: set_loss(p, t, WEIGHTS, CFG, axis_name="data"), axis_name="data"
+    )
+    totals, parts = jax.jit(per_shard)(sharded_preds, sharded_targets)
+    total, whole_parts, _ = _loss(preds, targets)
+    np.testing.assert_allclose(totals.sum(), total, rtol=1e-5)
+    for t in TERMS:
+        np.testing.assert_allclose(parts[t].sum(), whole_parts[t], rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(parts["num_targets"], whole_parts["num_targets"])
+
+
+def _perfect(targets, big=20.0):
+    """Predictions equal to the targets on the first M queries, background on the rest."""
+    rng = np.random.default_rng(4)
+    valid = targets.valid
+    onehot = np.eye(K, dtype=np.float32)[np.where(valid, targets.classes, K - 1)]  # [B, M, K]
+    logits = np.full((B, Q, K), -big, np.float32)
+    logits[..., K - 1] = big
+    logits[:, :M] = big * (2 * onehot - 1)
+    masks = np.full((B, Q, H, W), -big, np.float32)
+    masks[:, :M] = np.where(targets.masks & valid[..., None, None], big, -big)
+    dims = rng.random((B, Q, 3)).astype(np.float32)
+    pos = rng.normal(size=(B, Q, 3)).astype(np.float32)
+    yaw = rng.normal(size=(B, Q, 1)).astype(np.float32)
+    dims[:, :M], pos[:, :M] = targets.dims, targets.pos
+    yaw[:, :M, 0] = targets.yaw + 2 * np.pi * rng.integers(-1, 2, (B, M))  # same heading
+    fields = {"logits": logits, "dims": dims, "pos": pos, "yaw": yaw, "masks": masks}
+    return Predictions(**{name: np.stack([x] * L) for name, x in fields.items()})  # [L, ...]
+
+
+@pytest.mark.parametrize("config", [CFG, SAMPLED], ids=["dense", "sampled"])
+def test_perfect_predictions_give_near_zero_loss(batch, config):
+    _, targets = batch
+    preds = _perfect(targets)
+    key = jax.random.key(0) if config.num_mask_points else None
+    _, parts, _ = _loss(preds, targets, config=config, key=key)
+    for t in ("dice", "focal", "dims", "pos", "cls"):
+        assert parts[t] < 1e-5, (t, parts[t])
+    assert parts["yaw"] < 1e-5 * targets.valid.sum()  # float32 rounding of the 2 pi offsets
+
+
+def test_no_targets_gives_finite_loss_and_gradients():
+    preds, targets = _random_batch(5, valid=np.zeros((B, M), bool))
+    total, parts, grads = _loss(preds, targets)
+    assert np.isfinite(total)
+    for t in ("dice", "focal", "dims", "pos", "yaw"):
+        assert parts[t] == 0.0
+    # All queries are background: the weighted mean CE is the plain mean CE.
+    logp = jax.nn.log_softmax(preds.logits, axis=-1)[..., K - 1]
+    np.testing.assert_allclose(parts["cls"], -logp.mean((1, 2)).sum(), rtol=1e-5)
+    for g in jax.tree.leaves(grads):
+        assert np.isfinite(np.asarray(g)).all()
+
+
+@pytest.mark.parametrize("config", [CFG, SAMPLED], ids=["dense", "sampled"])
+def test_nan_costs_give_finite_loss_and_gradients(batch, config):
+    """NaN boxes and masks on two queries nobody should match poison the cost matrix only:
+    the loss and its gradients equal those with huge finite values there. Queries 0 and 1 are
+    the ones padded targets are handed (leftovers go lowest index first), so this also checks
+    that their outputs never leak into the loss (NaN * 0 = NaN)."""
+    preds, targets = batch
+    assert targets.valid.sum(1).max() <= Q - 2
+
+    def with_outputs(value):  # boxes and mask logits of queries 0 and 1 set to value
+        fields = {f: getattr(preds, f).copy() for f in ("dims", "pos", "yaw", "masks")}
+        for x in fields.values():
+            x[:, :, :2] = value
+        return dataclasses.replace(preds, **fields)
+
+    nan_preds, far_preds = with_outputs(np.nan), with_outputs(1e3)
+    assert not np.isfinite(np.asarray(_cost(nan_preds, targets, config=CFG))).all()
+    key = jax.random.key(3) if config.num_mask_points else None
+    total_nan, _, grads_nan = _loss(nan_preds, targets, config=config, key=key)
+    total_far, _, grads_far = _loss(far_preds, targets, config=config, key=key)
+    assert np.isfinite(total_nan)
+    np.testing.assert_allclose(total_nan, total_far, rtol=1e-6)
+    for g_nan, g_far in zip(jax.tree.leaves(grads_nan), jax.tree.leaves(grads_far), strict=True):
+        assert np.isfinite(np.asarray(g_nan)).all()
+        np.testing.assert_allclose(g_nan, g_far, rtol=1e-5, atol=1e-8)
+
+
+def test_sampled_cost_estimates_dense_cost(batch):
+    """Uniformly sampled cells give an unbiased focal term and a consistent Dice term."""
+    preds, targets = batch
+    dense = np.asarray(_cost(preds, targets, config=CFG))
+    many = dataclasses.replace(CFG, num_mask_points=8192)
+    sampled = np.asarray(_cost(preds, targets, config=many, key=jax.random.key(1)))
+    np.testing.assert_allclose(sampled, dense, rtol=0.02, atol=0.02)
+    assert not np.allclose(sampled, dense, rtol=1e-5, atol=1e-5)  # it did sample
+
+
+def test_sampled_mask_gradient_touches_at_most_p_cells(batch):
+    preds, targets = batch
+    _, _, grads = _loss(preds, targets, config=SAMPLED, key=jax.random.key(2))
+    touched = (np.asarray(grads.masks) != 0).reshape(L, B, Q, -1).sum(-1)  # [L, B, Q]
+    # Each matched query sees the P loss cells only (the cost is not differentiated).
+    assert touched.max() <= SAMPLED.num_mask_points
+    assert touched.max() > 0
+    assert np.isfinite(np.asarray(grads.masks)).all()
+
+
+def test_bad_inputs_raise(batch):
+    preds, targets = batch
+    with pytest.raises(ValueError, match="missing"):
+        set_loss(preds, targets, {"cls": 1.0})
+    with pytest.raises(ValueError, match="predictions.masks"):
+        set_loss(dataclasses.replace(preds, masks=preds.masks[..., :8]), targets, WEIGHTS)
+    with pytest.raises(ValueError, match="num_mask_points"):
+        set_loss(preds, targets, WEIGHTS, SAMPLED)

@@ -1,0 +1,115 @@
+"""matching.match against scipy.optimize.linear_sum_assignment (compare totals: ties make
+the optimal indices ambiguous)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.optimize import linear_sum_assignment
+
+from indoorbev_jax.matching import COST_CAP, clean_cost, match
+
+_match = jax.jit(match)
+
+
+def _scipy_total(cost, valid):
+    sub = cost[:, valid]
+    rows, cols = linear_sum_assignment(sub)
+    return sub[rows, cols].sum()
+
+
+def _our_total(cost, valid, query_idx):
+    return cost[query_idx[valid], np.flatnonzero(valid)].sum()
+
+
+def _problems(rng, n, q, m):
+    """n random problems in six kinds: uniform, ties, duplicate rows, padding, empty, full."""
+    kinds = np.arange(n) % 6
+    cost = rng.random((n, q, m))
+    ties = kinds == 1
+    cost[ties] = rng.integers(0, 3, (ties.sum(), q, m))  # many equal entries
+    dup = np.flatnonzero(kinds == 2)
+    for i in dup:  # whole duplicated rows, some rows repeated several times
+        src = rng.integers(0, q, q)
+        cost[i] = cost[i][np.where(rng.random(q) < 0.5, src, np.arange(q))]
+    valid = np.ones((n, m), bool)
+    padded = kinds == 3
+    valid[padded] = rng.random((padded.sum(), m)) < 0.5  # anywhere, not only a suffix
+    valid[kinds == 4] = False  # frames without targets
+    # Duplicated rows with padding too, and integer ties with padding.
+    valid[kinds == 2] = rng.random(((kinds == 2).sum(), m)) < 0.8
+    valid[ties] = rng.random((ties.sum(), m)) < 0.8
+    return cost.astype(np.float32), valid
+
+
+@pytest.mark.parametrize("q, m, n", [(12, 8, 1200), (30, 30, 60), (30, 12, 60)])
+def test_total_cost_equals_scipy(q, m, n):
+    rng = np.random.default_rng(q * 100 + m)
+    cost, valid = _problems(rng, n, q, m)
+    query_idx, target_idx = map(np.asarray, _match(cost, valid))
+    assert query_idx.shape == target_idx.shape == (n, m)
+    assert query_idx.dtype == target_idx.dtype == np.int32
+    np.testing.assert_array_equal(target_idx, np.broadcast_to(np.arange(m), (n, m)))
+    ours = np.array([_our_total(cost[i], valid[i], query_idx[i]) for i in range(n)])
+    ref = np.array([_scipy_total(cost[i], valid[i]) for i in range(n)])
+    np.testing.assert_allclose(ours, ref, rtol=1e-5, atol=1e-5)
+    # A one-to-one assignment: distinct queries in range, padded targets included.
+    assert ((query_idx >= 0) & (query_idx < q)).all()
+    assert all(len(set(row)) == m for row in query_idx)
+
+
+def test_non_finite_costs_are_avoided():
+    rng = np.random.default_rng(1)
+    n, q, m = 200, 12, 6
+    cost = rng.random((n, q, m)).astype(np.float32)
+    bad = rng.random((n, q, m)) < 0.2
+    cost[bad] = rng.choice(np.array([np.nan, np.inf, -np.inf], np.float32), bad.sum())
+    cost[: n // 2][np.isneginf(cost[: n // 2])] = np.nan  # first half: NaN and +Inf only
+    valid = rng.random((n, m)) < 0.8
+    query_idx = np.asarray(_match(cost, valid)[0])
+    cleaned = np.asarray(clean_cost(jnp.asarray(cost)))
+    assert np.isfinite(cleaned).all() and np.abs(cleaned).max() <= COST_CAP
+    for i in range(n):
+        assert len(set(query_idx[i])) == m
+        np.testing.assert_allclose(
+            _our_total(cleaned[i], valid[i], query_idx[i]),
+            _scipy_total(cleaned[i], valid[i]),
+            rtol=1e-6,
+        )
+        # Without -Inf, a pair costing COST_CAP is never worth it when an assignment of
+        # finite pairs exists (scipy on the 0/1 "is bad" matrix finds one if it does).
+        is_bad = ~np.isfinite(cost[i])
+        if i < n // 2 and _scipy_total(is_bad.astype(float), valid[i]) == 0:
+            assert not is_bad[query_idx[i][valid[i]], np.flatnonzero(valid[i])].any()
+
+
+def test_gradient_is_finite_for_nan_costs():
+    rng = np.random.default_rng(2)
+    x = jnp.asarray(rng.random((4, 7, 5)), jnp.float32)
+    valid = jnp.asarray(rng.random((4, 5)) < 0.7)
+
+    def picked_cost(x):
+        # The cost handed to the matcher has NaN/Inf entries (as a diverging loss term would);
+        # the matched entries of x are then summed.
+        nan_cost = jnp.where(x > 0.8, jnp.nan, x) / jnp.where(x < 0.1, 0.0, 1.0)
+        query_idx, target_idx = match(nan_cost, valid)
+        picked = jnp.take_along_axis(x, query_idx[:, None, :], axis=1)[:, 0]  # [B, M]
+        return jnp.where(valid, picked, 0.0).sum(), (query_idx, target_idx)
+
+    grad, (query_idx, _) = jax.jit(jax.grad(picked_cost, has_aux=True))(x)
+    assert np.isfinite(np.asarray(grad)).all()
+    # d(sum of matched entries)/dx is the assignment's indicator.
+    expected = np.zeros(x.shape, np.float32)
+    for b in range(4):
+        for j in np.flatnonzero(np.asarray(valid[b])):
+            expected[b, query_idx[b, j], j] = 1.0
+    np.testing.assert_array_equal(np.asarray(grad), expected)
+
+
+def test_bad_shapes_raise():
+    with pytest.raises(ValueError, match="cannot all be matched"):
+        match(jnp.zeros((1, 3, 4)), jnp.ones((1, 4), bool))
+    with pytest.raises(ValueError, match="valid must be"):
+        match(jnp.zeros((1, 4, 3)), jnp.ones((1, 4), bool))
+    with pytest.raises(ValueError, match=r"\[B, Q, M\]"):
+        match(jnp.zeros((4, 3)), jnp.ones((1, 3), bool))
