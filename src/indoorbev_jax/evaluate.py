@@ -1,0 +1,149 @@
+"""``indoorbev eval``: the paper's metrics between two KITTI-layout folders.
+
+    indoorbev eval --gt DATA --pred PRED [--split val] [--preset paper] [--json OUT]
+
+Ground truth: ``<gt>/label_2/<id>.txt`` and, where present, ``<gt>/mask_2/<id>.png`` (true
+footprints; otherwise the label boxes are rasterised). Predictions: ``<pred>/label_2/<id>.txt``
+with the score column, and ``<pred>/mask_2/<id>.png`` whose id k + 1 is the object on line k
+(the panoptic map; without it the predicted boxes are rasterised). Each prediction line is one
+AP detection with its mask from the map; the map itself is the panoptic prediction.
+Frames: the ids of ``<gt>/<split>.txt``, or every ground-truth label file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from indoorbev_jax.config import Config, GridConfig
+from indoorbev_jax.metrics import Evaluator
+
+
+@functools.partial(jax.jit, static_argnames="grid")
+def _rasterize(boxes, valid, grid: GridConfig):
+    from indoorbev_jax.data.rasterize import rasterize_boxes
+
+    return rasterize_boxes(boxes, valid, grid)
+
+
+def _masks_of(labels, mask_path: Path, grid: GridConfig):
+    """Panoptic ids [H, W] and per-object masks [M, H, W] of one label file."""
+    from indoorbev_jax.data import kitti
+
+    m = len(labels)
+    if mask_path.exists():
+        ids = kitti.read_mask(mask_path, grid.shape)
+        if ids.max(initial=0) > m:
+            raise kitti.DatasetError(
+                f"{mask_path}: instance id {ids.max()} but the label file has only {m} lines"
+            )
+        masks = ids[None] == np.arange(1, m + 1)[:, None, None]  # [M, H, W]
+        return ids, masks
+    # Pad to a multiple of 16 boxes so the jitted rasteriser compiles only a few shapes.
+    n = max(16, -(-m // 16) * 16)
+    boxes = np.zeros((n, 5), np.float32)
+    boxes[:m] = labels.boxes_bev()
+    ids, masks = _rasterize(boxes, np.arange(n) < m, grid)
+    return np.asarray(ids), np.asarray(masks)[:m]
+
+
+def evaluate_folders(
+    gt_root: str | Path, pred_root: str | Path, config: Config, split: str | None = None
+) -> dict:
+    """All metrics between a ground-truth and a prediction folder.
+
+    Args:
+      gt_root: KITTI-layout ground truth.
+      pred_root: KITTI-layout predictions (label_2 with scores, optional mask_2).
+      config: gives the grid, the classes and the inference thresholds.
+      split: frame list ``<gt_root>/<split>.txt``; None: every ground-truth label file.
+
+    Returns:
+      ``Evaluator.compute()``'s dict.
+
+    Raises:
+      kitti.DatasetError: a missing or malformed file (the message names it).
+    """
+    from indoorbev_jax.data import kitti
+
+    gt_root, pred_root = Path(gt_root), Path(pred_root)
+    ids = kitti.read_split(gt_root, split) if split else kitti.list_frames(gt_root)
+    if not ids:
+        raise kitti.DatasetError(f"{gt_root}: no frames (label_2/*.txt or the split file)")
+    k = config.num_classes
+    evaluator = Evaluator(config.inference, class_names=config.data.class_names)
+    for frame_id in ids:
+        gp, pp = kitti.frame_paths(gt_root, frame_id), kitti.frame_paths(pred_root, frame_id)
+        if not pp["labels"].exists():
+            raise kitti.DatasetError(f"{pp['labels']}: prediction file missing")
+        gt = kitti.read_labels(gp["labels"], config.data)
+        pred = kitti.read_labels(pp["labels"], config.data)
+        if len(pred) and pred.scores is None:
+            raise kitti.DatasetError(f"{pp['labels']}: predictions need the score column (16th)")
+        scores = pred.scores if pred.scores is not None else np.zeros(0, np.float32)
+        gt_ids, gt_masks = _masks_of(gt, gp["mask"], config.grid)
+        pred_ids, pred_masks = _masks_of(pred, pp["mask"], config.grid)
+        evaluator.add_frame(
+            gt=(gt_masks, gt.classes),
+            det=(pred_masks, pred.classes, scores),
+            gt_panoptic=(gt_ids, np.concatenate([[k], gt.classes])),
+            pred_panoptic=(pred_ids, np.concatenate([[k], pred.classes])),
+        )
+    return evaluator.compute()
+
+
+def to_json(results: dict) -> str:
+    """JSON text of a results dict; undefined values (NaN, AP's -1) become null."""
+
+    def clean(v):
+        if isinstance(v, dict):
+            return {str(key): clean(x) for key, x in v.items()}
+        if isinstance(v, float) and (math.isnan(v) or v < 0):
+            return None
+        return v
+
+    return json.dumps(clean(results), indent=2)
+
+
+def eval_command(args: argparse.Namespace) -> int:
+    """Entry point of ``indoorbev eval``: prints the per-class table, optionally writes JSON."""
+    from indoorbev_jax.data import kitti
+    from indoorbev_jax.metrics import format_table
+
+    config = Config.preset(args.preset)
+    try:
+        results = evaluate_folders(args.gt, args.pred, config, args.split)
+    except kitti.DatasetError as e:
+        print(f"error: {e}")
+        return 1
+    print(f"ground truth {args.gt}, predictions {args.pred} (preset {config.name})")
+    print(format_table(results))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(to_json(results) + "\n")
+        print(f"metrics written to {args.json}")
+    return 0
+
+
+def add_eval_command(commands) -> None:
+    """Registers ``eval`` on the ``indoorbev`` subcommand parsers."""
+    parser = commands.add_parser(
+        "eval", help="AP@0.25/0.50, PQ/SQ/RQ and mIoU between two KITTI-layout folders"
+    )
+    parser.add_argument("--gt", required=True, help="ground-truth folder (label_2/, mask_2/)")
+    parser.add_argument("--pred", required=True, help="prediction folder (label_2/ + scores)")
+    parser.add_argument("--split", default=None, help="frame list <gt>/<split>.txt")
+    parser.add_argument("--json", default=None, help="also write the metrics to this file")
+    parser.add_argument(
+        "--preset",
+        default="small",
+        choices=("paper", "small", "tiny"),
+        help="config preset giving the grid and classes (default: small)",
+    )
+    parser.set_defaults(func=eval_command)
