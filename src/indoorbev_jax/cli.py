@@ -95,7 +95,34 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("--max-problems", type=int, default=10)
     _add_preset(check)
     check.set_defaults(func=dataset_check)
+
+    from indoorbev_jax.evaluate import add_eval_command  # owns `indoorbev eval`
+
+    add_eval_command(commands)
+
+    pred = commands.add_parser("predict", help="run a trained model on .bin, KITTI or bag input")
+    pred.add_argument("model", help="run directory or exported model file (.msgpack)")
+    pred.add_argument("input", help=".bin file, KITTI-style folder or ROS 2 bag folder")
+    pred.add_argument("--out", required=True, help="output folder (label_2, mask_2, pictures)")
+    pred.add_argument("--topic", default=None, help="PointCloud2 topic of a bag")
+    pred.add_argument("--bag-out", default=None, help="also write a bag with the predictions")
+    pred.add_argument("--no-pictures", action="store_true")
+    pred.set_defaults(func=run_predict)
     return parser
+
+
+def run_predict(args: argparse.Namespace) -> int:
+    from indoorbev_jax.predict import predict
+
+    predict(
+        args.model,
+        args.input,
+        args.out,
+        topic=args.topic,
+        bag_out=args.bag_out,
+        pictures=not args.no_pictures,
+    )
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,252 @@
+"""Inference on your own scans: ``indoorbev predict MODEL INPUT --out DIR``.
+
+MODEL is a run directory (``config.json`` + orbax checkpoints; the best checkpoint is
+used) or a model file written by ``export_model`` (one msgpack file holding the config and
+the parameters, what ``make demo`` ships). INPUT is a ``.bin`` file, a KITTI-style folder
+(``velodyne/``) or a ROS 2 bag folder holding sensor_msgs/PointCloud2 of any field layout
+with x, y, z and optional intensity.
+
+Per frame, DIR receives ``label_2/<id>.txt`` (KITTI lines with a 16th score field, one per
+predicted segment), ``mask_2/<id>.png`` (16-bit ids, id k + 1 = line k) and
+``pictures/<id>.png`` (raw points | axis-fusion feature map | predicted masks | final BEV);
+optionally a bag with the input clouds and the predictions as MarkerArray.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import statistics
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from indoorbev_jax import viz
+from indoorbev_jax.config import Config
+from indoorbev_jax.data import kitti
+from indoorbev_jax.data.dataset import pad_points
+from indoorbev_jax.inference import panoptic_inference
+from indoorbev_jax.models import IndoorBEV
+
+MODEL_FORMAT = "indoorbev_jax-model-v1"
+
+
+def export_model(params: Any, config: Config, path: str | os.PathLike) -> Path:
+    """Writes config + parameters as one msgpack file (atomically)."""
+    from flax import serialization
+
+    payload = {
+        "format": MODEL_FORMAT,
+        "config": config.to_json(),
+        "params": jax.tree.map(np.asarray, params),
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(serialization.msgpack_serialize(payload))
+    os.replace(tmp, path)
+    return path
+
+
+def load_model(path: str | os.PathLike) -> tuple[Config, Any]:
+    """(config, params) from a run directory or an exported model file."""
+    from flax import serialization
+
+    path = Path(path)
+    if path.is_dir():
+        from indoorbev_jax.train import load_params
+
+        return load_params(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such model file or run directory")
+    try:
+        payload = serialization.msgpack_restore(path.read_bytes())
+    except Exception as e:  # noqa: BLE001 - any decoding failure means a bad file
+        raise ValueError(f"{path}: not an indoorbev_jax model file ({e})") from None
+    if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:
+        raise ValueError(f"{path}: not an indoorbev_jax model file (format {MODEL_FORMAT})")
+    return Config.from_dict(json.loads(payload["config"])), payload["params"]
+
+
+def iter_frames(path: str | os.PathLike, topic: str | None = None) -> Iterator:
+    """Yields (frame id, points [N, 4], stamp ns or None, frame name) from INPUT."""
+    path = Path(path)
+    if path.is_file() and path.suffix == ".bin":
+        yield path.stem, kitti.read_points(path), None, "lidar"
+    elif (path / "velodyne").is_dir():
+        for bin_path in sorted((path / "velodyne").glob("*.bin")):
+            yield bin_path.stem, kitti.read_points(bin_path), None, "lidar"
+    elif (path / "metadata.yaml").exists():
+        from indoorbev_jax.rosbag import read_clouds
+
+        for k, (stamp, frame, points) in enumerate(read_clouds(path, topic)):
+            yield f"{k:06d}", points, stamp, frame
+    else:
+        raise ValueError(
+            f"{path}: expected a .bin file, a KITTI-style folder with velodyne/, or a "
+            f"ROS 2 bag folder with metadata.yaml"
+        )
+
+
+class Predictor:
+    """A jitted model + panoptic inference for one frame at a time (static shapes)."""
+
+    def __init__(self, config: Config, params: Any):
+        self.config = config
+        self.params = params
+        model = IndoorBEV(config)
+
+        def run(params, points, valid):
+            predictions, state = model.apply(
+                params,
+                points,
+                valid,
+                capture_intermediates=lambda mdl, _: mdl.name == "encoder",
+            )
+            output = panoptic_inference(predictions, config.inference)
+            bev = state["intermediates"]["encoder"]["__call__"][0]
+            final = jax.tree.map(lambda x: x[-1], predictions)
+            return final, output, bev
+
+        self._run = jax.jit(run)
+
+    def __call__(self, points: np.ndarray):
+        """(points padded [N, 4], valid, final-layer predictions, panoptic output, BEV
+        features [H, W, C]) of one raw cloud, all numpy, batch axis removed."""
+        cfg = self.config
+        padded, valid, _ = pad_points(points, cfg.grid, cfg.data.max_points)
+        final, output, bev = self._run(self.params, padded[None], valid[None])
+        final, output, bev = jax.device_get((final, output, bev))
+        one = lambda tree: jax.tree.map(lambda x: np.asarray(x)[0], tree)  # noqa: E731
+        return padded, valid, one(final), one(output), np.asarray(bev)[0]
+
+
+def to_labels(final, output) -> tuple[kitti.ObjectLabels, np.ndarray]:
+    """Predicted segments as labels with scores, and the panoptic map renumbered so that
+    id k + 1 is label line k."""
+    queries = np.flatnonzero(output.segment_valid)
+    labels = kitti.ObjectLabels(
+        classes=output.det_classes[queries],
+        dims=np.abs(final.dims[queries]),
+        pos=final.pos[queries],
+        yaw=final.yaw[queries, 0],
+        occlusion=np.zeros(len(queries)),
+        scores=output.det_scores[queries],
+    )
+    remap = np.zeros(output.instance_ids.max(initial=0) + 1, np.int32)
+    remap[queries + 1] = np.arange(1, len(queries) + 1)
+    return labels, remap[output.instance_ids]
+
+
+def render_prediction(config: Config, points, valid, output, bev, labels, ids):
+    grid, names = config.grid, config.data.class_names
+    scale = viz.picture_scale(grid, min_size=400)
+    pts = points[valid]
+    raw = viz.render_bev(pts, None, None, grid, names, min_size=400)
+    feats = viz.grid_image(viz.feature_image(bev), scale)
+    masks = viz.grid_image(
+        viz.masks_image(output.det_masks & output.det_valid[:, None, None]), scale
+    )
+    final = viz.render_bev(pts, labels, ids, grid, names, min_size=400)
+    return viz.panels(
+        [
+            ("raw points (height)", raw),
+            ("axis-fusion features (PCA)", viz.Image.fromarray(feats)),
+            ("query masks", viz.Image.fromarray(masks)),
+            ("panoptic BEV", final),
+        ]
+    )
+
+
+def predict(
+    model_path: str | os.PathLike,
+    input_path: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    topic: str | None = None,
+    bag_out: str | os.PathLike | None = None,
+    pictures: bool = True,
+    verbose: bool = True,
+) -> dict:
+    """Runs the model over INPUT and writes labels, masks, pictures (and a bag).
+
+    Returns:
+      ``{"frames", "latency_ms": {"median", "p90", "max"}, "objects"}``; latency is the
+      jitted model + inference time per frame, the first (compiling) frame excluded.
+    """
+    config, params = load_model(model_path)
+    predictor = Predictor(config, jax.tree.map(jnp.asarray, params))
+    out = Path(out)
+    names = config.data.class_names
+    latencies, objects, frames = [], 0, 0
+    bag_frames = []
+    for frame_id, points, stamp, frame_name in iter_frames(input_path, topic):
+        start = time.perf_counter()
+        padded, valid, final, output, bev = predictor(points)
+        ms = 1e3 * (time.perf_counter() - start)
+        if frames:
+            latencies.append(ms)
+        frames += 1
+        labels, ids = to_labels(final, output)
+        objects += len(labels)
+        kitti.write_mask(out / "mask_2" / f"{frame_id}.png", ids)
+        kitti.write_labels(out / "label_2" / f"{frame_id}.txt", labels, names)
+        if pictures:
+            pic = render_prediction(config, padded, valid, output, bev, labels, ids)
+            (out / "pictures").mkdir(parents=True, exist_ok=True)
+            pic.save(out / "pictures" / f"{frame_id}.png")
+        if bag_out is not None:
+            bag_frames.append((stamp, frame_name, points, labels))
+        if verbose:
+            print(f"{frame_id}: {len(labels)} objects, {ms:.1f} ms")
+    if frames == 0:
+        raise ValueError(f"{input_path}: no frames found")
+    if bag_out is not None:
+        write_prediction_bag(bag_out, bag_frames, names)
+    summary = {"frames": frames, "objects": objects}
+    if latencies:
+        lat = np.asarray(latencies)
+        summary["latency_ms"] = {
+            "median": float(statistics.median(lat)),
+            "p90": float(np.percentile(lat, 90)),
+            "max": float(lat.max()),
+        }
+    if verbose:
+        lat = summary.get("latency_ms")
+        tail = f", median {lat['median']:.1f} ms/frame (first frame compiles)" if lat else ""
+        print(f"{frames} frames, {objects} objects written to {out}{tail}")
+    return summary
+
+
+def write_prediction_bag(bag: str | os.PathLike, frames: list, names) -> None:
+    """Input clouds on ``/points`` and predictions on ``/detections`` (MarkerArray),
+    written to a temporary folder and renamed into place."""
+    from rosbags.rosbag2 import Writer
+
+    from indoorbev_jax.rosbag import MARKER_ARRAY, POINTCLOUD2, cloud_msg, markers_msg, typestore
+
+    ts = typestore()
+    bag = Path(bag)
+    partial = bag.with_name(bag.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    tmp = partial / bag.name
+    with Writer(tmp, version=8) as writer:
+        c_pts = writer.add_connection("/points", POINTCLOUD2, typestore=ts)
+        c_det = writer.add_connection("/detections", MARKER_ARRAY, typestore=ts)
+        for k, (stamp, frame, points, labels) in enumerate(frames):
+            stamp = stamp if stamp is not None else (k + 1) * 100_000_000
+            cloud = cloud_msg(ts, points, stamp, frame)
+            writer.write(c_pts, stamp, ts.serialize_cdr(cloud, POINTCLOUD2))
+            markers = markers_msg(ts, labels, names, stamp, frame)
+            writer.write(c_det, stamp, ts.serialize_cdr(markers, MARKER_ARRAY))
+    if bag.exists():
+        shutil.rmtree(bag)
+    os.replace(tmp, bag)
+    partial.rmdir()

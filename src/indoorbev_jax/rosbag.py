@@ -1,0 +1,192 @@
+"""ROS 2 bags without a ROS install, through the pure-Python ``rosbags`` library.
+
+Reads sensor_msgs/PointCloud2 of any field layout holding x, y, z (and optionally
+intensity), and builds the PointCloud2 / MarkerArray messages the simulator export and
+the predict command write.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from indoorbev_jax.data import kitti
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+
+# sensor_msgs/PointField datatypes -> numpy scalar types.
+_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+class BagError(ValueError):
+    """A bag or message cannot be read as lidar frames; the message names what and why."""
+
+
+def typestore():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+def header(ts, stamp_ns: int, frame: str = "lidar"):
+    t = ts.types
+    stamp = t["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+    return t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+
+def cloud_msg(ts, points: np.ndarray, stamp_ns: int, frame: str = "lidar"):
+    """A PointCloud2 of float32 x, y, z, intensity from points [N, 4]."""
+    t = ts.types
+    field = t["sensor_msgs/msg/PointField"]
+    fields = [
+        field(name=n, offset=4 * i, datatype=field.FLOAT32, count=1)
+        for i, n in enumerate(("x", "y", "z", "intensity"))
+    ]
+    data = np.ascontiguousarray(points, dtype="<f4")
+    return t[POINTCLOUD2](
+        header=header(ts, stamp_ns, frame),
+        height=1,
+        width=len(data),
+        fields=fields,
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * len(data),
+        data=data.view(np.uint8).reshape(-1),
+        is_dense=True,
+    )
+
+
+def markers_msg(ts, labels: kitti.ObjectLabels, names, stamp_ns: int, frame: str = "lidar"):
+    """A MarkerArray with one CUBE per object: namespace = class name, text = class and
+    occlusion (ground truth) or class and score (predictions)."""
+    t = ts.types
+    marker = t["visualization_msgs/msg/Marker"]
+    markers = []
+    for k in range(len(labels)):
+        yaw = float(labels.yaw[k])
+        name = names[int(labels.classes[k])]
+        pose = t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](*(float(v) for v in labels.pos[k])),
+            orientation=t["geometry_msgs/msg/Quaternion"](
+                x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)
+            ),
+        )
+        hue = int(labels.classes[k]) / max(len(names), 1)
+        extra = (
+            f"{float(labels.scores[k]):.3f}"
+            if labels.scores is not None
+            else str(int(labels.occlusion[k]))
+        )
+        markers.append(
+            marker(
+                header=header(ts, stamp_ns, frame),
+                ns=name,
+                id=k,
+                type=marker.CUBE,
+                action=marker.ADD,
+                pose=pose,
+                scale=t["geometry_msgs/msg/Vector3"](*(float(v) for v in labels.dims[k])),
+                color=t["std_msgs/msg/ColorRGBA"](r=hue, g=1.0 - hue, b=0.5, a=0.6),
+                lifetime=t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+                frame_locked=False,
+                points=[],
+                colors=[],
+                texture_resource="",
+                texture=t["sensor_msgs/msg/CompressedImage"](
+                    header=header(ts, stamp_ns, frame), format="", data=np.zeros(0, np.uint8)
+                ),
+                uv_coordinates=[],
+                text=f"{name} {extra}",
+                mesh_resource="",
+                mesh_file=t["visualization_msgs/msg/MeshFile"](
+                    filename="", data=np.zeros(0, np.uint8)
+                ),
+                mesh_use_embedded_materials=False,
+            )
+        )
+    return t[MARKER_ARRAY](markers=markers)
+
+
+def markers_to_labels(msg, data_config) -> kitti.ObjectLabels:
+    """Inverse of ``markers_msg`` (scores when the texts carry them)."""
+    m = msg.markers
+    extras = [x.text.split()[-1] for x in m]
+    has_scores = any("." in e for e in extras)
+    return kitti.ObjectLabels(
+        classes=[data_config.class_index(x.ns) for x in m],
+        dims=[[x.scale.x, x.scale.y, x.scale.z] for x in m],
+        pos=[[x.pose.position.x, x.pose.position.y, x.pose.position.z] for x in m],
+        yaw=[2 * math.atan2(x.pose.orientation.z, x.pose.orientation.w) for x in m],
+        occlusion=[0 if has_scores else int(e) for e in extras],
+        scores=[float(e) for e in extras] if has_scores else None,
+    )
+
+
+def pointcloud2_to_points(msg, source: str = "PointCloud2") -> np.ndarray:
+    """float32 [N, 4] (x, y, z, intensity) from a PointCloud2 of any field layout.
+
+    x, y and z are required; intensity is taken from a field named ``intensity`` (or
+    ``reflectivity``) when present, else 0. Any numeric datatype and either byte order.
+    """
+    fields = {f.name: f for f in msg.fields}
+    missing = [n for n in ("x", "y", "z") if n not in fields]
+    if missing:
+        have = sorted(fields)
+        raise BagError(f"{source}: PointCloud2 lacks field(s) {missing}; it has {have}")
+    order = ">" if msg.is_bigendian else "<"
+    n = int(msg.width) * int(msg.height)
+    raw = np.asarray(msg.data, np.uint8)
+    if raw.size < n * msg.point_step:
+        raise BagError(
+            f"{source}: data holds {raw.size} bytes, expected {n} points x {msg.point_step}"
+        )
+    rows = raw[: n * msg.point_step].reshape(n, msg.point_step)
+
+    def column(name):
+        f = fields[name]
+        if f.datatype not in _FIELD_TYPES:
+            raise BagError(f"{source}: field '{name}' has unknown datatype {f.datatype}")
+        dtype = np.dtype(order + _FIELD_TYPES[f.datatype])
+        cols = rows[:, f.offset : f.offset + dtype.itemsize]
+        return np.ascontiguousarray(cols).view(dtype).reshape(n).astype(np.float32)
+
+    name_i = next((c for c in ("intensity", "reflectivity") if c in fields), None)
+    intensity = column(name_i) if name_i else np.zeros(n, np.float32)
+    return np.stack([column("x"), column("y"), column("z"), intensity], axis=1)
+
+
+def read_clouds(
+    bag: str | os.PathLike, topic: str | None = None
+) -> Iterator[tuple[int, str, np.ndarray]]:
+    """Yields (timestamp ns, frame id, points [N, 4]) for each PointCloud2 of a bag.
+
+    Args:
+      bag: a rosbag2 folder (sqlite3 or MCAP storage).
+      topic: topic name; None picks the only PointCloud2 topic (an error when several).
+    """
+    from rosbags.rosbag2 import Reader
+
+    bag = Path(bag)
+    ts = typestore()
+    with Reader(bag) as reader:
+        clouds = [c for c in reader.connections if c.msgtype == POINTCLOUD2]
+        if topic is not None:
+            chosen = [c for c in reader.connections if c.topic == topic]
+            if not chosen:
+                have = sorted({c.topic for c in reader.connections})
+                raise BagError(f"{bag}: no topic '{topic}'; topics: {have}")
+            if chosen[0].msgtype != POINTCLOUD2:
+                raise BagError(f"{bag}: topic '{topic}' is {chosen[0].msgtype}, not {POINTCLOUD2}")
+        elif len({c.topic for c in clouds}) != 1:
+            names = sorted({c.topic for c in clouds})
+            raise BagError(f"{bag}: {len(names)} PointCloud2 topics {names}; pick one with --topic")
+        else:
+            chosen = clouds
+        for conn, stamp, raw in reader.messages(connections=chosen):
+            msg = ts.deserialize_cdr(raw, conn.msgtype)
+            yield stamp, msg.header.frame_id, pointcloud2_to_points(msg, f"{bag}@{stamp}")

@@ -1,0 +1,120 @@
+"""Predict path: model files, PointCloud2 of any layout, KITTI and bag inputs agree."""
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from indoorbev_jax import predict as P
+from indoorbev_jax.cli import main as cli_main
+from indoorbev_jax.config import Config, InferenceConfig
+from indoorbev_jax.data import kitti
+from indoorbev_jax.rosbag import BagError, pointcloud2_to_points, typestore
+from indoorbev_jax.train import init_state
+
+sys.path.insert(0, str(Path(__file__).parent))
+from synthetic import write_synthetic_dataset  # noqa: E402
+
+# Thresholds at 0 so that an untrained model still yields segments to write.
+CFG = dataclasses.replace(
+    Config.tiny(), inference=InferenceConfig(score_threshold=0.0, overlap_threshold=0.0)
+)
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    params = init_state(CFG, jax.random.key(0)).params
+    return P.export_model(params, CFG, tmp_path_factory.mktemp("model") / "tiny.msgpack")
+
+
+def test_model_file_round_trip_and_bad_file(model_file, tmp_path):
+    config, params = P.load_model(model_file)
+    assert config == CFG
+    expected = init_state(CFG, jax.random.key(0)).params
+    jax.tree.map(np.testing.assert_array_equal, params, expected)
+    (tmp_path / "bad.msgpack").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match=r"bad\.msgpack: not an indoorbev_jax model file"):
+        P.load_model(tmp_path / "bad.msgpack")
+
+
+def _cloud(fields, dtype, points, bigendian=False):
+    """A PointCloud2 with a structured numpy layout."""
+    ts = typestore()
+    t = ts.types
+    pf = t["sensor_msgs/msg/PointField"]
+    codes = {"f4": 7, "f8": 8, "u2": 4, "u1": 2}
+    arr = np.zeros(len(points["x"]), dtype=dtype)
+    for name in fields:
+        arr[name] = points[name]
+    msg_fields = [
+        pf(name=n, offset=dtype.fields[n][1], datatype=codes[dtype.fields[n][0].str[1:]], count=1)
+        for n in fields
+    ]
+    header = t["std_msgs/msg/Header"](
+        stamp=t["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="livox"
+    )
+    return t["sensor_msgs/msg/PointCloud2"](
+        header=header, height=1, width=len(arr), fields=msg_fields, is_bigendian=bigendian,
+        point_step=dtype.itemsize, row_step=dtype.itemsize * len(arr),
+        data=arr.view(np.uint8).reshape(-1), is_dense=True,
+    )  # fmt: skip
+
+
+def test_pointcloud2_any_layout():
+    rng = np.random.default_rng(0)
+    n = 50
+    src = {k: rng.normal(size=n) for k in "xyz"}
+    src["intensity"] = rng.integers(0, 255, n)
+    # Livox-like: x y z float32, then a uint8 tag, intensity float32 after padding.
+    d1 = np.dtype({"names": ["x", "y", "z", "intensity"], "formats": ["<f4", "<f4", "<f4", "<f4"],
+                   "offsets": [0, 4, 8, 16], "itemsize": 24})  # fmt: skip
+    got = pointcloud2_to_points(_cloud(["x", "y", "z", "intensity"], d1, src))
+    expected = np.stack([src["x"], src["y"], src["z"], src["intensity"]], 1).astype(np.float32)
+    np.testing.assert_array_equal(got, expected)
+    # Big-endian float64 in another order, uint16 intensity.
+    d2 = np.dtype([("intensity", ">u2"), ("z", ">f8"), ("x", ">f8"), ("y", ">f8")])
+    got = pointcloud2_to_points(_cloud(["intensity", "z", "x", "y"], d2, src, bigendian=True))
+    np.testing.assert_allclose(got, expected, rtol=1e-6)
+    # No intensity field: zeros.
+    d3 = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    got = pointcloud2_to_points(_cloud(["x", "y", "z"], d3, src))
+    np.testing.assert_array_equal(got[:, 3], 0)
+    with pytest.raises(BagError, match=r"lacks field\(s\) \['z'\]"):
+        d4 = np.dtype([("x", "<f4"), ("y", "<f4")])
+        pointcloud2_to_points(_cloud(["x", "y"], d4, src))
+
+
+def test_predict_kitti_then_bag_round_trip(model_file, tmp_path, capsys):
+    data = tmp_path / "data"
+    write_synthetic_dataset(data, frames=3, val=1)
+    out = tmp_path / "pred"
+    bag = tmp_path / "pred_bag"
+    assert cli_main(["predict", str(model_file), str(data), "--out", str(out),
+                     "--bag-out", str(bag)]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    assert "3 frames" in printed and "ms/frame" in printed
+    for fid in ("000000", "000001", "000002"):
+        lines = (out / "label_2" / f"{fid}.txt").read_text().splitlines()
+        assert lines and all(len(line.split()) == 16 for line in lines)
+        labels = kitti.read_labels(out / "label_2" / f"{fid}.txt", CFG.data)
+        ids = kitti.read_mask(out / "mask_2" / f"{fid}.png", CFG.grid.shape)
+        assert set(np.unique(ids)) - {0} == set(range(1, len(labels) + 1))
+        assert (out / "pictures" / f"{fid}.png").stat().st_size > 1000
+    # The bag written alongside holds the same clouds; predicting from it gives the same.
+    out2 = tmp_path / "pred2"
+    summary = P.predict(model_file, bag, out2, pictures=False, verbose=False)
+    assert summary["frames"] == 3
+    for fid in ("000000", "000001", "000002"):
+        a = (out / "label_2" / f"{fid}.txt").read_text()
+        assert a == (out2 / "label_2" / f"{fid}.txt").read_text()
+
+
+def test_bad_input_is_named(model_file, tmp_path):
+    with pytest.raises(ValueError, match="expected a .bin file, a KITTI-style folder"):
+        P.predict(model_file, tmp_path, tmp_path / "o", verbose=False)
+    (tmp_path / "x.bin").write_bytes(b"\0" * 10)
+    with pytest.raises(kitti.DatasetError, match=r"x\.bin: size 10 bytes"):
+        P.predict(model_file, tmp_path / "x.bin", tmp_path / "o", verbose=False)
