@@ -206,13 +206,14 @@ def replicate(tree, mesh: Mesh):
 
 
 class SimSource:
-    """On-device simulated batches: batch of step s = ``generate_batch(fold_in(key, s))``."""
+    """On-device simulated batches: batch of step s = ``generate_batch(fold_in(key, s))``
+    from the simulator's ``split`` (train, val or test layouts)."""
 
-    def __init__(self, config: Config, key: jax.Array):
+    def __init__(self, config: Config, key: jax.Array, split: str = "train"):
         from indoorbev_sim import generate_batch
 
         self.key = key
-        self._generate = jax.jit(lambda k: generate_batch(k, config))
+        self._generate = jax.jit(lambda k: generate_batch(k, config, split))
 
     def __call__(self, step: int) -> Batch:
         return self._generate(jax.random.fold_in(self.key, step))
@@ -421,7 +422,7 @@ def make_sources(config: Config, data: str | None, seed: int, skip_bad: bool):
     if data is None:
         key = jax.random.key(seed)
         train = SimSource(config, jax.random.fold_in(key, 0))
-        val_source = SimSource(config, jax.random.fold_in(key, 1))
+        val_source = SimSource(config, jax.random.fold_in(key, 1), "val")
         val = [val_source(k) for k in range(t.eval_batches)]
         return train, val
     train = KittiSource(data, "train", config, seed, skip_bad)
