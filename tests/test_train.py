@@ -67,15 +67,21 @@ def test_vmapped_sweep_equals_separate_runs(batch, step_fn):
     hypers = stack_hypers(CFG, lrs, {"dice": [5.0, 1.0]})
     states = init_sweep(CFG, 2, jax.random.key(0))
     sweep = make_sweep_step(CFG)
+    swept = []
     for _ in range(2):
-        states, _ = sweep(states, batch, jax.random.key(1), hypers)
+        states, metrics = sweep(states, batch, jax.random.key(1), hypers)
+        swept.append(metrics)
     for k in range(2):
         state = T.init_state(CFG, jax.random.key(0))
         hyper = jax.tree.map(lambda x, k=k: x[k], hypers)
-        for _ in range(2):
-            state, _ = step_fn(state, batch, jax.random.key(1), hyper)
+        for s in range(2):
+            state, metrics = step_fn(state, batch, jax.random.key(1), hyper)
+            for name in ("loss", "grad_norm", "dice", "cls"):
+                np.testing.assert_allclose(swept[s][name][k], metrics[name], rtol=1e-4)
+        # Adam divides by sqrt(v): on near-zero gradients vmap's float reassociation can
+        # move a parameter by up to a fraction of one learning-rate step.
         jax.tree.map(
-            lambda a, b, k=k: np.testing.assert_allclose(a[k], b, rtol=1e-3, atol=2e-5),
+            lambda a, b, k=k: np.testing.assert_allclose(a[k], b, rtol=1e-3, atol=0.1 * lrs[k]),
             states.params,
             state.params,
         )
