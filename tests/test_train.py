@@ -139,8 +139,8 @@ SHARDED = textwrap.dedent(
 
 def _env(cache):
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env["JAX_COMPILATION_CACHE_DIR"] = str(cache)
-    env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    env.setdefault("JAX_COMPILATION_CACHE_DIR", str(cache))  # the Makefile sets a shared one
+    env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     return env
 
 
