@@ -1,0 +1,193 @@
+"""Export simulated frames: the KITTI layout of DESIGN section 3 and ROS2 bags.
+
+``export(out, frames, seed, config)`` writes frames ``000000 ..`` scene by scene: scene j
+(T = ``sim.frames_per_sequence`` consecutive frames) goes to the test split when
+``j % 10 == 9`` (drawn from the held-out plans and variants), to val when ``j % 10 == 8``,
+else to train. Each frame is a pure function of (seed, j, t), so:
+
+* every file is written atomically (temporary name, then rename), the label file last; a
+  frame is complete when its label file exists;
+* a rerun after a kill skips the complete scenes and regenerates the rest, giving exactly
+  the files of an uninterrupted run (``export.json`` pins seed, frame count and config;
+  a rerun with different ones is refused, naming that file);
+* the split files and the bag are (re)written at the end, from the frames on disk.
+
+ROS2 bag (``rosbags``, pure Python, no ROS install): ``/lidar/points``
+(sensor_msgs/PointCloud2 with float32 x, y, z, intensity, frame "lidar") and
+``/lidar/objects`` (visualization_msgs/MarkerArray, one CUBE per object: pose = box centre
+and yaw, scale = (length, width, height), ``ns`` = class name, ``id`` = label line,
+``text`` = "class occlusion"), one message pair per frame at t = (frame + 1) * frame_dt.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from indoorbev_jax.config import Config
+from indoorbev_jax.data import kitti
+from indoorbev_jax.rosbag import markers_to_labels, typestore
+
+SPLITS = ("train", "val", "test")
+POINTS_TOPIC, OBJECTS_TOPIC = "/lidar/points", "/lidar/objects"
+
+
+class ExportError(RuntimeError):
+    """An export cannot go on; the message names the file at fault."""
+
+
+def scene_split(j: int) -> str:
+    """Split of scene j: test every 10th (j % 10 == 9), val the one before, else train."""
+    return "test" if j % 10 == 9 else "val" if j % 10 == 8 else "train"
+
+
+def frame_id(index: int) -> str:
+    return f"{index:06d}"
+
+
+@functools.lru_cache(maxsize=4)
+def _scene_fn(config: Config):
+    from indoorbev_sim import generate
+
+    def run(key, test):
+        return generate.generate_sequences(key, config, 1, test)
+
+    return jax.jit(run)
+
+
+def _complete(root: Path, fid: str) -> bool:
+    paths = kitti.frame_paths(root, fid)
+    return all(paths[k].exists() for k in ("points", "mask", "labels"))
+
+
+def _check_meta(root: Path, meta: dict) -> None:
+    path = root / "export.json"
+    meta = json.loads(json.dumps(meta))  # tuples -> lists, as read back
+    if path.exists():
+        try:
+            old = json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            raise ExportError(f"{path}: unreadable ({e}); remove it or use another --out") from e
+        if old != meta:
+            diff = sorted(k for k in meta if old.get(k) != meta[k])
+            raise ExportError(
+                f"{path}: this folder holds an export with different {diff}; "
+                "rerun with the same settings to resume, or use another --out"
+            )
+    else:
+        root.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(meta, indent=1))
+        os.replace(tmp, path)
+
+
+def write_scene(root: Path, config: Config, batch, info, frame_ids: list[str]) -> None:
+    """Writes the T frames of one scene (arrays [1, T, ...]) under ``frame_ids``."""
+    names = config.data.class_names
+    for t, fid in enumerate(frame_ids):
+        valid = np.asarray(batch.targets.valid[0, t])
+        labels = kitti.ObjectLabels(
+            classes=np.asarray(batch.targets.classes[0, t])[valid],
+            dims=np.asarray(batch.targets.dims[0, t])[valid],
+            pos=np.asarray(batch.targets.pos[0, t])[valid],
+            yaw=np.asarray(batch.targets.yaw[0, t])[valid],
+            occlusion=np.asarray(info.occlusion[0, t])[valid],
+        )
+        points = np.asarray(batch.points[0, t])[np.asarray(batch.point_valid[0, t])]
+        ids = np.asarray(batch.targets.instance_ids[0, t])
+        kitti.write_frame(root, fid, points, labels, names, instance_ids=ids)
+
+
+def export(
+    out: str | os.PathLike,
+    frames: int,
+    seed: int,
+    config: Config,
+    rosbag: str | os.PathLike | None = None,
+    progress: bool = True,
+    throttle: float = 0.0,
+) -> dict[str, list[str]]:
+    """Writes (or completes) an export; returns the frame ids of each split.
+
+    Args:
+      out: dataset root.
+      frames: number of frames.
+      seed: base seed; scene j uses ``fold_in(key(seed), j)``.
+      config: run configuration (grid, data, sim).
+      rosbag: optional path of a ROS2 bag to (re)write from the exported frames.
+      progress: show a tqdm progress bar.
+      throttle: seconds to pause after each generated scene (to leave a shared machine some
+        breath; the resume test uses it to kill an export midway).
+    """
+    from tqdm import tqdm
+
+    if frames <= 0:
+        raise ValueError(f"frames: must be > 0, got {frames}")
+    root = Path(out)
+    _check_meta(root, {"seed": int(seed), "frames": int(frames), "config": config.to_dict()})
+    t_len = config.sim.frames_per_sequence
+    num_scenes = math.ceil(frames / t_len)
+    key = jax.random.key(seed)
+    splits: dict[str, list[str]] = {s: [] for s in SPLITS}
+    fn = _scene_fn(config)
+    with tqdm(total=frames, desc="export", unit="frame", disable=not progress) as bar:
+        for j in range(num_scenes):
+            ids = [frame_id(j * t_len + t) for t in range(t_len) if j * t_len + t < frames]
+            split = scene_split(j)
+            splits[split] += ids
+            if not all(_complete(root, fid) for fid in ids):
+                batch, info = fn(jax.random.fold_in(key, j), split == "test")
+                write_scene(root, config, batch, info, ids)
+                time.sleep(throttle)
+            bar.update(len(ids))
+    for split, ids in splits.items():
+        kitti.write_split(root, split, ids)
+    if rosbag is not None:
+        all_ids = sorted(i for ids in splits.values() for i in ids)
+        write_rosbag(root, rosbag, all_ids, config)
+    return splits
+
+
+# ------------------------------------------------------------------------- ROS2 bags
+
+
+def write_rosbag(root, bag: str | os.PathLike, ids: list[str], config: Config) -> None:
+    """Writes the frames ``ids`` of the KITTI folder ``root`` into a ROS2 bag (atomically:
+    a temporary bag folder renamed into place)."""
+    from indoorbev_jax.rosbag import write_bag
+
+    dt_ns = round(config.sim.frame_dt * 1e9)
+
+    def frames():
+        for fid in ids:
+            paths = kitti.frame_paths(root, fid)
+            points = kitti.read_points(paths["points"])
+            labels = kitti.read_labels(paths["labels"], config.data)
+            yield (int(fid) + 1) * dt_ns, "lidar", points, labels
+
+    write_bag(bag, frames(), config.data.class_names, POINTS_TOPIC, OBJECTS_TOPIC)
+
+
+def read_rosbag(
+    bag: str | os.PathLike, config: Config
+) -> list[tuple[np.ndarray, kitti.ObjectLabels]]:
+    """Reads a bag written by ``write_rosbag``: per frame (points [N, 4], labels)."""
+    from rosbags.rosbag2 import Reader
+
+    ts = typestore()
+    clouds, objects = {}, {}
+    with Reader(bag) as reader:
+        for conn, stamp, raw in reader.messages():
+            msg = ts.deserialize_cdr(raw, conn.msgtype)
+            if conn.topic == POINTS_TOPIC:
+                clouds[stamp] = np.frombuffer(bytes(msg.data), "<f4").reshape(-1, 4)
+            elif conn.topic == OBJECTS_TOPIC:
+                objects[stamp] = markers_to_labels(msg, config.data)
+    return [(clouds[s], objects[s]) for s in sorted(clouds)]

@@ -1,0 +1,454 @@
+"""Labelled lidar frames from procedural scenes, batched and jittable end to end.
+
+    batch = indoorbev_sim.generate_batch(key, config)             # indoorbev_jax.types.Batch
+    batch, info = generate_batch_with_info(key, config, split="test")
+    seq, info = generate_sequences(key, config, num_scenes=2)      # leading [S, T] axes
+
+One call samples B scenes (``scenes.sample_scene``), poses them at the frame time, casts the
+scan pattern's rays from the lidar riding its robot (``sensor.scan``: Warp kernels over the
+batched MJX model/data), adds noise and dropout, and derives labels (``labels``): padded
+targets with true-shape footprint masks and instance ids. ``FrameInfo`` carries what the
+``Batch`` has no room for: per-object point counts, visibility and KITTI occlusion level,
+which object each point belongs to, the plan and the sensor pose.
+
+``reference_frame`` is the plain sequential pipeline (MuJoCo ``mj_multiRay`` + numpy, one
+frame at a time) on the same scene: the tests' oracle and the benchmark's baseline.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+from indoorbev_sim import labels as labels_mod
+from indoorbev_sim import scenes as scenes_mod
+
+from indoorbev_jax.config import Config, SimConfig
+from indoorbev_jax.data.rasterize import instance_ids_from_masks
+from indoorbev_jax.types import Batch, Targets
+
+
+@struct.dataclass
+class FrameInfo:
+    """Per-frame extras beside the ``Batch`` (leading [B], or [S, T] for sequences).
+
+    Attributes:
+      num_points: int32 [B, M], valid returns on each target object (0 for padding).
+      visibility: float32 [B, M], fraction of the object's primitives the sensor sees.
+      occlusion: int32 [B, M], KITTI occlusion level 0..3 (0 for padding).
+      slot: int32 [B, M], template slot of each target (-1 for padding).
+      variant: int32 [B, M], variant index of each target's class (-1 for padding).
+      point_object: int32 [B, N], target index of the object each point hit (-1: background
+        or an object that is not a target).
+      plan: int32 [B], floor-plan id (``layouts.plan_name``).
+      sensor_origin: float32 [B, 3] world position; sensor_yaw: float32 [B].
+      time: float32 [B], seconds since the start of the sequence.
+      frame_index: int32 [B], scan pattern frame.
+      scene: the ``scenes.Scene`` [B] the frame shows (posed at ``time``).
+    """
+
+    num_points: jax.Array
+    visibility: jax.Array
+    occlusion: jax.Array
+    slot: jax.Array
+    variant: jax.Array
+    point_object: jax.Array
+    plan: jax.Array
+    sensor_origin: jax.Array
+    sensor_yaw: jax.Array
+    time: jax.Array
+    frame_index: jax.Array
+    scene: scenes_mod.Scene
+
+
+def make_pattern(sim: SimConfig):
+    """The scan pattern named by ``sim.pattern`` with ``sim.num_rays`` rays per frame."""
+    from indoorbev_sim import patterns
+
+    n = sim.num_rays
+    if sim.pattern == "mid360":
+        return patterns.Mid360Pattern(points_per_second=n * 10)
+    if sim.pattern == "vlp16":
+        return dataclasses.replace(patterns.SpinningPattern.vlp16(), columns=n // 16)
+    if sim.pattern == "os128":
+        return dataclasses.replace(patterns.SpinningPattern.os128(), columns=n // 128)
+    return patterns.GridPattern(
+        azimuth_steps=n // 32, elevation_steps=32, elevation_min_deg=-7.0, elevation_max_deg=52.0
+    )
+
+
+def _yaw_matrix(yaw: jax.Array) -> jax.Array:
+    c, s, z, o = jnp.cos(yaw), jnp.sin(yaw), jnp.zeros_like(yaw), jnp.ones_like(yaw)
+    return jnp.stack(
+        [jnp.stack([c, -s, z], -1), jnp.stack([s, c, z], -1), jnp.stack([z, z, o], -1)], -2
+    )  # [..., 3, 3]
+
+
+def _in_workspace(xyz: jax.Array, config: Config) -> jax.Array:
+    g = config.grid
+    return (
+        (xyz[..., 0] >= g.x_range[0]) & (xyz[..., 0] < g.x_range[1])
+        & (xyz[..., 1] >= g.y_range[0]) & (xyz[..., 1] < g.y_range[1])
+        & (xyz[..., 2] >= g.z_range[0]) & (xyz[..., 2] <= g.z_range[1])
+    )  # fmt: skip
+
+
+def simulate(
+    key: jax.Array, config: Config, scene: scenes_mod.Scene, time: jax.Array, frame_index
+) -> tuple[Batch, FrameInfo]:
+    """Ray-casts and labels B posed scenes.
+
+    Args:
+      key: PRNG key for sensor noise and dropout.
+      config: run configuration (static).
+      scene: ``Scene`` batched over B.
+      time: float [B], seconds since the start of each scene's sequence.
+      frame_index: int scalar, scan pattern frame (shared by the B scenes).
+
+    Returns:
+      (``Batch``, ``FrameInfo``) with leading axis B.
+    """
+    from indoorbev_sim import lidar, sensor
+
+    sim = config.sim
+    tpl = scenes_mod.template_for(config)
+    m, n = config.data.max_objects, config.data.max_points
+    size, xpos, xmat, refl = jax.vmap(functools.partial(scenes_mod.geom_state, tpl))(scene, time)
+    model = scenes_mod.geom_model(tpl, size)  # geom_size [B, G, 3]: one model per scene
+    data = scenes_mod.GeomData(geom_xpos=xpos, geom_xmat=xmat)
+    origin, heading = jax.vmap(scenes_mod.sensor_pose)(scene, time)  # [B, 3], [B]
+    pose = sensor.Pose(origin, _yaw_matrix(heading))
+    directions = make_pattern(sim).frame(frame_index).directions  # [R, 3] sensor frame
+    sensor_cfg = sensor.SensorConfig(
+        min_range=sim.min_range, max_range=sim.max_range, range_noise_std=sim.range_noise,
+        dropout_prob=sim.dropout,
+    )  # fmt: skip
+    scan = sensor.scan(model, data, pose, directions, key, sensor_cfg, reflectivity=refl)
+    valid = scan.valid & _in_workspace(scan.points[..., :3], config)  # [B, R]
+    geom_slot = jnp.asarray(tpl.geom_slot)
+    point_slot = jnp.where(scan.geom_id >= 0, geom_slot[jnp.maximum(scan.geom_id, 0)], -1)
+
+    # Visibility: one ray per primitive, aimed at its centre.
+    target, _ = jax.vmap(functools.partial(labels_mod.visibility_targets, tpl))(scene, time)
+    to_target = target - origin[:, None]  # [B, S * P, 3]
+    vdirs = to_target / jnp.maximum(jnp.linalg.norm(to_target, axis=-1, keepdims=True), 1e-9)
+    _, vgeom = lidar.cast_rays(model, data, origin, vdirs, sim.max_range)
+    vis_slot = jnp.where(vgeom >= 0, geom_slot[jnp.maximum(vgeom, 0)], -1)
+
+    per_slot = jax.vmap(functools.partial(labels_mod.object_labels, tpl, config=config))(
+        scene, time, origin, heading, point_slot, valid, vis_slot
+    )  # fields [B, S, ...]
+
+    # Targets: labelled slots first (slot order kept), padded or cut to M.
+    s = tpl.num_slots
+    order = jnp.argsort(~per_slot.labelled, axis=1, stable=True)  # [B, S]
+    if s < m:
+        order = jnp.concatenate([order, jnp.full((order.shape[0], m - s), s)], 1)
+    sel = order[:, :m]  # [B, M], index s = padding
+
+    def take(x, fill):
+        x = jnp.concatenate([x, jnp.full_like(x[:, :1], fill)], 1)  # [B, S + 1, ...]
+        return jnp.take_along_axis(x, sel.reshape(sel.shape + (1,) * (x.ndim - 2)), 1)
+
+    tvalid = take(per_slot.labelled, False)
+    classes = jnp.where(tvalid, take(per_slot.classes, 0), config.num_classes).astype(jnp.int32)
+    masks = take(per_slot.masks, False) & tvalid[..., None, None]
+    targets = Targets(
+        classes=classes,
+        dims=jnp.where(tvalid[..., None], take(per_slot.dims, 0.0), 0.0),
+        pos=jnp.where(tvalid[..., None], take(per_slot.pos, 0.0), 0.0),
+        yaw=jnp.where(tvalid, take(per_slot.yaw, 0.0), 0.0),
+        valid=tvalid,
+        masks=masks,
+        instance_ids=jax.vmap(instance_ids_from_masks)(masks, tvalid),
+    )
+
+    # Points: valid returns first, padded or cut to N.
+    r = valid.shape[1]
+    porder = jnp.argsort(~valid, axis=1, stable=True)  # [B, R]
+    if r < n:
+        porder = jnp.concatenate([porder, jnp.full((porder.shape[0], n - r), r)], 1)
+    psel = porder[:, :n]  # [B, N]
+
+    def ptake(x, fill):
+        x = jnp.concatenate([x, jnp.full_like(x[:, :1], fill)], 1)
+        return jnp.take_along_axis(x, psel.reshape(psel.shape + (1,) * (x.ndim - 2)), 1)
+
+    pvalid = ptake(valid, False)
+    points = jnp.where(pvalid[..., None], ptake(scan.points, 0.0), 0.0)
+    # Slot -> target index, to say which target each point belongs to.
+    target_of_slot = jnp.full((sel.shape[0], s + 1), -1, jnp.int32)
+    target_of_slot = jax.vmap(lambda t, i: t.at[i].set(jnp.arange(m, dtype=jnp.int32)))(
+        target_of_slot, sel
+    )
+    target_of_slot = jnp.where(
+        jnp.concatenate([per_slot.labelled, jnp.zeros_like(per_slot.labelled[:, :1])], 1),
+        target_of_slot,
+        -1,
+    )
+    pslot = jnp.where(pvalid, ptake(point_slot, -1), -1)
+    point_object = jnp.take_along_axis(target_of_slot, jnp.where(pslot >= 0, pslot, s), 1)
+
+    info = FrameInfo(
+        num_points=jnp.where(tvalid, take(per_slot.num_points, 0), 0),
+        visibility=jnp.where(tvalid, take(per_slot.visibility, 0.0), 0.0),
+        occlusion=jnp.where(tvalid, take(per_slot.occlusion, 0), 0),
+        slot=jnp.where(tvalid, sel, -1).astype(jnp.int32),
+        variant=jnp.where(tvalid, take(scene.variant, -1), -1),
+        point_object=point_object,
+        plan=scene.room.plan,
+        sensor_origin=origin,
+        sensor_yaw=heading,
+        time=time,
+        frame_index=jnp.full(time.shape, frame_index, jnp.int32),
+        scene=scene,
+    )
+    return Batch(points=points, point_valid=pvalid, targets=targets), info
+
+
+def sample_scenes(key: jax.Array, config: Config, num_scenes: int, split="train"):
+    """``num_scenes`` scenes (``Scene`` batched over a leading axis).
+
+    ``split`` is "train", "val", "test", or a (possibly traced) bool meaning "test".
+    """
+    test = scenes_mod.split_flag(split) if isinstance(split, str) else split
+    keys = jax.random.split(key, num_scenes)
+    return jax.vmap(lambda k: scenes_mod.sample_scene(k, config, test))(keys)
+
+
+def generate_batch_with_info(
+    key: jax.Array, config: Config, split: str = "train", batch_size: int | None = None
+) -> tuple[Batch, FrameInfo]:
+    """B independent labelled frames and their ``FrameInfo`` (jittable; config static).
+
+    Args:
+      key: PRNG key.
+      config: run configuration; B defaults to ``config.train.batch_size``.
+      split: "train"/"val" (plans and variants not held out) or "test" (held-out plans).
+      batch_size: overrides B.
+    """
+    scene, time, frame_index, k_noise = draw_frames(key, config, split, batch_size)
+    return simulate(k_noise, config, scene, time, frame_index)
+
+
+def draw_frames(key: jax.Array, config: Config, split="train", batch_size: int | None = None):
+    """What ``generate_batch_with_info`` simulates for this key, before any ray is cast.
+
+    Returns:
+      (scene ``Scene`` [B], time float32 [B], pattern frame index int32 [], noise key).
+    """
+    b = config.train.batch_size if batch_size is None else batch_size
+    k_scene, k_frame, k_time, k_noise = jax.random.split(key, 4)
+    scene = sample_scenes(k_scene, config, b, split)
+    span = (config.sim.frames_per_sequence - 1) * config.sim.frame_dt
+    time = jax.random.uniform(k_time, (b,), maxval=span)  # anywhere along the sequence
+    frame_index = jax.random.randint(k_frame, (), 0, 1 << 20)
+    return scene, time, frame_index, k_noise
+
+
+def generate_batch(key: jax.Array, config: Config, split: str = "train") -> Batch:
+    """B = ``config.train.batch_size`` labelled frames as the model and loss consume them.
+
+    Jittable end to end (``jax.jit(generate_batch, static_argnums=(1, 2))``): scene
+    sampling, ray casting, noise, labels, masks and padded targets, all on the device.
+    """
+    return generate_batch_with_info(key, config, split)[0]
+
+
+def generate_sequences(
+    key: jax.Array, config: Config, num_scenes: int, split: str = "train"
+) -> tuple[Batch, FrameInfo]:
+    """``num_scenes`` scenes x T = ``sim.frames_per_sequence`` consecutive frames.
+
+    Persons and robots move along their paths, the lidar rides its robot, and frame t uses
+    scan pattern frame t, so the non-repetitive pattern keeps filling in.
+
+    Returns:
+      (``Batch``, ``FrameInfo``) whose arrays have leading axes [S, T].
+    """
+    k_scene, k_noise = jax.random.split(key)
+    scene = sample_scenes(k_scene, config, num_scenes, split)
+    t = config.sim.frames_per_sequence
+
+    def frame(k):
+        time = jnp.full((num_scenes,), k * config.sim.frame_dt, jnp.float32)
+        return simulate(jax.random.fold_in(k_noise, k), config, scene, time, k)
+
+    out = jax.lax.map(frame, jnp.arange(t))  # [T, S, ...]
+    return jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), out)
+
+
+@functools.lru_cache(maxsize=8)
+def jitted_generate(config: Config, split: str = "train", batch_size: int | None = None):
+    """``generate_batch_with_info`` jitted for (config, split, B), cached per process."""
+    return jax.jit(lambda key: generate_batch_with_info(key, config, split, batch_size))
+
+
+@functools.lru_cache(maxsize=8)
+def jitted_draw(config: Config, split: str = "train", batch_size: int | None = None):
+    """``draw_frames`` jitted for (config, split, B), cached per process."""
+    return jax.jit(lambda key: draw_frames(key, config, split, batch_size))
+
+
+# ------------------------------------------------------------------ sequential reference
+
+
+def scene_numpy(scene: scenes_mod.Scene, index: int):
+    """Scene ``index`` of a batched ``Scene`` as numpy arrays."""
+    return jax.tree.map(lambda x: np.asarray(x[index]), scene)
+
+
+def reference_cast(tpl: scenes_mod.SceneTemplate, size, xpos, xmat, origin, dirs, max_range):
+    """MuJoCo's ``mj_multiRay`` on one posed scene (numpy in, numpy out).
+
+    Args:
+      size, xpos: float [G, 3]; xmat: float [G, 3, 3]; origin: float [3]; dirs: float [R, 3].
+
+    Returns:
+      distance float64 [R] (-1: miss or beyond max_range), geom_id int32 [R].
+    """
+    m = tpl.mj_model
+    m.geom_size[:] = size
+    rb, aabb = scenes_mod.geom_bounds(tpl, jnp.asarray(size))
+    m.geom_rbound[:] = np.asarray(rb)
+    m.geom_aabb[:] = np.asarray(aabb)
+    d = mujoco.MjData(m)
+    d.geom_xpos[:] = xpos
+    d.geom_xmat[:] = np.asarray(xmat).reshape(-1, 9)
+    r = len(dirs)
+    dist = np.zeros(r)
+    gid = np.zeros(r, np.int32)
+    mujoco.mj_multiRay(
+        m, d, np.asarray(origin, np.float64), np.asarray(dirs, np.float64).reshape(-1),
+        None, 1, -1, gid, dist, None, r, max_range,
+    )  # fmt: skip
+    miss = (gid < 0) | (dist < 0) | (dist > max_range)
+    return np.where(miss, -1.0, dist), np.where(miss, -1, gid).astype(np.int32)
+
+
+def _np_world_prims(scene, time):
+    pose = np.asarray(scene.pose) + 0.0
+    pose[:, :2] += np.asarray(scene.velocity) * time
+    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    lx, ly = scene.prims.pos[..., 0], scene.prims.pos[..., 1]
+    x = c[:, None] * lx - s[:, None] * ly + pose[:, None, 0]
+    y = s[:, None] * lx + c[:, None] * ly + pose[:, None, 1]
+    pos = np.stack([x, y, scene.prims.pos[..., 2]], -1)
+    return pose, pos, scene.prims.yaw + pose[:, None, 2], scene.prims.on & scene.on[:, None]
+
+
+def reference_footprints(tpl, scene, time, origin, heading, grid) -> np.ndarray:
+    """Numpy re-derivation of ``labels.footprints`` (one scene): bool [S, H, W]."""
+    from indoorbev_sim import objects
+
+    _, pos, yaw, on = _np_world_prims(scene, time)
+    h, w = grid.shape
+    xs = grid.x_range[0] + (np.arange(w) + 0.5) * grid.cell_size
+    ys = grid.y_range[0] + (np.arange(h) + 0.5) * grid.cell_size
+    gx, gy = np.meshgrid(xs, ys)  # [H, W]
+    c, s = np.cos(heading), np.sin(heading)
+    out = np.zeros((tpl.num_slots, h, w), bool)
+    eps = 1e-6
+    for si in range(tpl.num_slots):
+        for p, kind in enumerate(objects.CLASSES[tpl.slot_class[si]].prims):
+            if not on[si, p]:
+                continue
+            dxw, dyw = pos[si, p, 0] - origin[0], pos[si, p, 1] - origin[1]
+            cx, cy = c * dxw + s * dyw, -s * dxw + c * dyw
+            a = yaw[si, p] - heading
+            size = scene.prims.size[si, p]
+            along = np.cos(a) * (gx - cx) + np.sin(a) * (gy - cy)
+            across = -np.sin(a) * (gx - cx) + np.cos(a) * (gy - cy)
+            lo = grid.cell_size / 2  # thin parts widened to one cell (labels.footprints)
+            if kind == "box":
+                m = np.abs(along) <= max(size[0], lo) + eps
+                m &= np.abs(across) <= max(size[1], lo) + eps
+            elif kind == "hcyl":
+                m = np.abs(along) <= max(size[1], lo) + eps
+                m &= np.abs(across) <= max(size[0], lo) + eps
+            elif kind == "ellipsoid":
+                a, b = max(size[0], lo) + eps, max(size[1], lo) + eps
+                m = (along / a) ** 2 + (across / b) ** 2 <= 1
+            else:  # sphere, upright cylinder, capsule: distance to the projected axis
+                half = size[1] * np.sin(scene.prims.pitch[si, p]) if kind == "capsule" else 0.0
+                t = np.clip(along, -abs(half), abs(half))
+                m = (along - t) ** 2 + across**2 <= (max(size[0], lo) + eps) ** 2
+            out[si] |= m
+    return out
+
+
+def reference_frame(
+    config: Config, scene, time: float, directions: np.ndarray, rng: np.random.Generator
+) -> dict[str, np.ndarray]:
+    """The plain sequential pipeline for one frame: MuJoCo ``mj_multiRay`` + numpy.
+
+    Same scene and rays as ``simulate`` (``scene`` a numpy ``Scene`` of one scene), noise
+    drawn from ``rng``; labels derived with numpy (``reference_footprints``).
+
+    Returns:
+      dict: points [R, 4], valid [R], geom_id [R], distance [R], point_slot [R], and per
+      slot (S): masks [S, H, W], num_points, visibility, labelled, pos, dims, yaw.
+    """
+    sim, grid = config.sim, config.grid
+    tpl = scenes_mod.template_for(config)
+    size, xpos, xmat, refl = (np.asarray(x) for x in _geom_state_jit(config)(scene, time))
+    pose, _, _, _ = _np_world_prims(scene, time)
+    origin = np.array([*(scene.ego[:2] + scene.ego_velocity * time), scene.sensor_height])
+    heading = float(scene.ego[2])
+    rot = np.asarray(_yaw_matrix(jnp.float32(heading)))
+    world_dirs = directions @ rot.T
+    dist, gid = reference_cast(tpl, size, xpos, xmat, origin, world_dirs, sim.max_range)
+    hit = gid >= 0
+    measured = dist + sim.range_noise * rng.standard_normal(len(dist))
+    valid = hit & (rng.random(len(dist)) >= sim.dropout)
+    valid &= (measured >= sim.min_range) & (measured <= sim.max_range)
+    xyz = directions * measured[:, None]
+    g = grid
+    valid &= (xyz[:, 0] >= g.x_range[0]) & (xyz[:, 0] < g.x_range[1])
+    valid &= (xyz[:, 1] >= g.y_range[0]) & (xyz[:, 1] < g.y_range[1])
+    valid &= (xyz[:, 2] >= g.z_range[0]) & (xyz[:, 2] <= g.z_range[1])
+    point_slot = np.where(hit, tpl.geom_slot[np.maximum(gid, 0)], -1)
+    s = tpl.num_slots
+    counts = np.bincount(point_slot[valid & (point_slot >= 0)], minlength=s)[:s]
+    # Visibility rays at primitive centres.
+    _, ppos, _, pon = _np_world_prims(scene, time)
+    to = ppos.reshape(-1, 3) - origin
+    vd = to / np.maximum(np.linalg.norm(to, axis=-1, keepdims=True), 1e-9)
+    _, vg = reference_cast(tpl, size, xpos, xmat, origin, vd, sim.max_range)
+    vslot = np.where(vg >= 0, tpl.geom_slot[np.maximum(vg, 0)], -1).reshape(s, -1)
+    seen = (vslot == np.arange(s)[:, None]) & pon
+    visibility = seen.sum(-1) / np.maximum(pon.sum(-1), 1)
+    c, sn = np.cos(heading), np.sin(heading)
+    d = pose[:, :2] - origin[:2]
+    pos = np.stack(
+        [c * d[:, 0] + sn * d[:, 1], -sn * d[:, 0] + c * d[:, 1],
+         scene.prims.dims[:, 2] / 2 - origin[2]], -1
+    )  # fmt: skip
+    inside = (np.abs(pos[:, 0]) <= g.x_range[1]) & (np.abs(pos[:, 1]) <= g.y_range[1])
+    inside &= (pos[:, 0] >= g.x_range[0]) & (pos[:, 1] >= g.y_range[0])
+    return {
+        "points": np.concatenate([xyz, np.zeros((len(xyz), 1))], -1) * valid[:, None],
+        "valid": valid,
+        "geom_id": gid,
+        "distance": dist,
+        "point_slot": point_slot,
+        "masks": reference_footprints(tpl, scene, time, origin, heading, grid),
+        "num_points": counts,
+        "visibility": visibility,
+        "labelled": scene.on & inside & (counts >= sim.min_points),
+        "pos": pos,
+        "dims": scene.prims.dims,
+        "yaw": (pose[:, 2] - heading + np.pi) % (2 * np.pi) - np.pi,
+        "reflectivity": refl,
+    }
+
+
+@functools.lru_cache(maxsize=4)
+def _geom_state_jit(config: Config):
+    tpl = scenes_mod.template_for(config)
+    return jax.jit(functools.partial(scenes_mod.geom_state, tpl))

@@ -1,0 +1,38 @@
+"""BEV pictures of labelled frames (Pillow): points coloured by height, footprint masks,
+boxes and class names. Picture orientation: x (forward) to the right, y (left) up.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from indoorbev_jax.config import Config
+from indoorbev_jax.data import kitti
+from indoorbev_jax.viz import render_bev
+
+# One renderer for ground truth and predictions.
+render_frame = render_bev
+
+
+def show(
+    root: str | os.PathLike,
+    out: str | os.PathLike,
+    config: Config,
+    ids: list[str] | None = None,
+) -> list[Path]:
+    """Writes ``<out>/<id>.png`` for frames of the KITTI folder ``root`` (all by default)."""
+    root, out = Path(root), Path(out)
+    ids = kitti.list_frames(root) if ids is None else ids
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for fid in ids:
+        paths = kitti.frame_paths(root, fid)
+        points = kitti.read_points(paths["points"])
+        labels = kitti.read_labels(paths["labels"], config.data)
+        mask = kitti.read_mask(paths["mask"], config.grid.shape) if paths["mask"].exists() else None
+        pic = render_frame(points, labels, mask, config.grid, config.data.class_names)
+        path = out / f"{fid}.png"
+        pic.save(path)
+        written.append(path)
+    return written
