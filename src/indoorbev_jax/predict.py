@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import statistics
 import time
 from collections.abc import Iterator
@@ -225,28 +224,11 @@ def predict(
 
 
 def write_prediction_bag(bag: str | os.PathLike, frames: list, names) -> None:
-    """Input clouds on ``/points`` and predictions on ``/detections`` (MarkerArray),
-    written to a temporary folder and renamed into place."""
-    from rosbags.rosbag2 import Writer
+    """Input clouds on ``/points`` and predictions on ``/detections`` (MarkerArray)."""
+    from indoorbev_jax.rosbag import write_bag
 
-    from indoorbev_jax.rosbag import MARKER_ARRAY, POINTCLOUD2, cloud_msg, markers_msg, typestore
-
-    ts = typestore()
-    bag = Path(bag)
-    partial = bag.with_name(bag.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
-    tmp = partial / bag.name
-    with Writer(tmp, version=8) as writer:
-        c_pts = writer.add_connection("/points", POINTCLOUD2, typestore=ts)
-        c_det = writer.add_connection("/detections", MARKER_ARRAY, typestore=ts)
-        for k, (stamp, frame, points, labels) in enumerate(frames):
-            stamp = stamp if stamp is not None else (k + 1) * 100_000_000
-            cloud = cloud_msg(ts, points, stamp, frame)
-            writer.write(c_pts, stamp, ts.serialize_cdr(cloud, POINTCLOUD2))
-            markers = markers_msg(ts, labels, names, stamp, frame)
-            writer.write(c_det, stamp, ts.serialize_cdr(markers, MARKER_ARRAY))
-    if bag.exists():
-        shutil.rmtree(bag)
-    os.replace(tmp, bag)
-    partial.rmdir()
+    stamped = (
+        (stamp if stamp is not None else (k + 1) * 100_000_000, frame, points, labels)
+        for k, (stamp, frame, points, labels) in enumerate(frames)
+    )
+    write_bag(bag, stamped, names, "/points", "/detections")

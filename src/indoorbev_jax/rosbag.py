@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterator
+import shutil
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -190,3 +191,39 @@ def read_clouds(
         for conn, stamp, raw in reader.messages(connections=chosen):
             msg = ts.deserialize_cdr(raw, conn.msgtype)
             yield stamp, msg.header.frame_id, pointcloud2_to_points(msg, f"{bag}@{stamp}")
+
+
+def write_bag(
+    bag: str | os.PathLike,
+    frames: Iterable[tuple[int, str, np.ndarray, kitti.ObjectLabels]],
+    class_names,
+    points_topic: str,
+    objects_topic: str,
+) -> None:
+    """Writes (stamp ns, frame id, points [N, 4], labels) frames as PointCloud2 on
+    ``points_topic`` and MarkerArray on ``objects_topic``.
+
+    The bag is written under a temporary folder and renamed into place, so an interrupted
+    write never leaves a bag under the final name.
+    """
+    from rosbags.rosbag2 import Writer
+
+    ts = typestore()
+    bag = Path(bag)
+    # rosbags names the storage file after the bag folder: write <bag>.partial/<name>.
+    partial = bag.with_name(bag.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    tmp = partial / bag.name
+    with Writer(tmp, version=8) as writer:
+        c_pts = writer.add_connection(points_topic, POINTCLOUD2, typestore=ts)
+        c_obj = writer.add_connection(objects_topic, MARKER_ARRAY, typestore=ts)
+        for stamp, frame, points, labels in frames:
+            cloud = cloud_msg(ts, points, stamp, frame)
+            writer.write(c_pts, stamp, ts.serialize_cdr(cloud, POINTCLOUD2))
+            markers = markers_msg(ts, labels, class_names, stamp, frame)
+            writer.write(c_obj, stamp, ts.serialize_cdr(markers, MARKER_ARRAY))
+    if bag.exists():
+        shutil.rmtree(bag)
+    os.replace(tmp, bag)
+    partial.rmdir()
