@@ -1,0 +1,216 @@
+"""Benchmark the IndoorBEV network: compile time, forward and train-step latency, memory.
+
+Ours (Flax) and the PyTorch peer (``../shared/peers/torch_indoorbev.py``, the speed and
+memory bar) run in the same process, interleaved, on the same inputs (about 20k uniform
+points per frame, 2 % padding); medians of several runs and the ratio peer / ours are
+printed. The train step is forward + backward + AdamW with the peer's dummy loss (sum of
+the mean squares of all outputs), so both sides do the same work.
+
+Memory: for ours, XLA's buffer assignment of the compiled step (arguments + outputs +
+temporaries, exact and load-independent); ``--only jax`` / ``--only torch`` run one side
+alone so the printed peak RSS belongs to that side (one process per row).
+
+The peer's upsampler defaults to bilinear x2 + 3x3 conv steps; ours is a dense layer +
+depth-to-space per step, the same map as the peer's ``up_mode="convT2"``. Both peer modes
+can be timed (``--peer``); the like-for-like ratio is against ``convT2``.
+
+Needs ``torch==2.13.0`` in the venv for the peer (benchmark-only, not a dependency)::
+
+    JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_model.py --preset small --mode train \
+        --batch 4 --peer convT2,default
+    JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_model.py --preset paper --mode fwd \
+        --batch 1 --reps 3 --peer convT2
+    JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_model.py --preset paper --mode train \
+        --batch 2 --reps 2 --only jax --set head.remat=1 --set backbone.remat=1
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import resource
+import statistics
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from indoorbev_jax.config import Config
+from indoorbev_jax.models import IndoorBEV
+
+PEER_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "peers")
+N_POINTS = 20000
+
+
+def make_inputs(cfg: Config, batch: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Uniform points in the workspace, the last 2 % of slots padding (as the peer does)."""
+    rng = np.random.default_rng(seed)
+    u = rng.random((batch, N_POINTS, 4), dtype=np.float32)
+    lo = np.array([cfg.grid.x_range[0], cfg.grid.y_range[0], cfg.grid.z_range[0], 0.0])
+    hi = np.array([cfg.grid.x_range[1], cfg.grid.y_range[1], cfg.grid.z_range[1], 1.0])
+    pts = (lo + u * (hi - lo)).astype(np.float32)
+    valid = np.ones((batch, N_POINTS), bool)
+    valid[:, int(N_POINTS * 0.98) :] = False
+    return pts, valid
+
+
+def apply_overrides(cfg: Config, settings: list[str]) -> Config:
+    """``section.field=value`` strings -> a new Config (ints, floats and 0/1 bools)."""
+    for item in settings:
+        key, value = item.split("=", 1)
+        section, field = key.split(".")
+        sub = getattr(cfg, section)
+        old = getattr(sub, field)
+        new = bool(int(value)) if isinstance(old, bool) else type(old)(value)
+        cfg = dataclasses.replace(cfg, **{section: dataclasses.replace(sub, **{field: new})})
+    return cfg
+
+
+def dummy_loss(preds) -> jax.Array:
+    return sum(jnp.mean(jnp.square(x.astype(jnp.float32))) for x in jax.tree.leaves(preds))
+
+
+def build_jax(cfg: Config, mode: str, batch: int, dtype):
+    """Jitted step, its arguments, compile seconds and XLA memory figure (bytes)."""
+    model = IndoorBEV(cfg, dtype=dtype)
+    pts, valid = (jnp.asarray(a) for a in make_inputs(cfg, batch))
+    params = jax.jit(model.init)(jax.random.key(0), pts, valid)
+    if mode == "fwd":
+
+        def step(params, pts, valid):
+            return dummy_loss(model.apply(params, pts, valid))
+
+        args = (params, pts, valid)
+        jitted = jax.jit(step)
+    else:
+        opt = optax.adamw(1e-4)
+
+        def step(params, opt_state, pts, valid):
+            loss, grads = jax.value_and_grad(lambda p: dummy_loss(model.apply(p, pts, valid)))(
+                params
+            )
+            updates, opt_state = opt.update(grads, opt_state, params)
+            return optax.apply_updates(params, updates), opt_state, loss
+
+        args = (params, opt.init(params), pts, valid)
+        jitted = jax.jit(step, donate_argnums=(0, 1))
+    t0 = time.perf_counter()
+    compiled = jitted.lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    mem = compiled.memory_analysis()
+    mem_bytes = (
+        mem.argument_size_in_bytes
+        + mem.output_size_in_bytes
+        - mem.alias_size_in_bytes
+        + mem.temp_size_in_bytes
+    )
+    n_params = sum(x.size for x in jax.tree.leaves(params))
+    state = {"args": args}
+
+    def run():
+        out = compiled(*state["args"])
+        if mode == "train":
+            state["args"] = (out[0], out[1], *state["args"][2:])
+            out = out[2]
+        jax.block_until_ready(out)
+
+    return run, compile_s, mem_bytes, n_params
+
+
+def build_peer(preset: str, mode: str, batch: int, up_mode: str):
+    """The peer's step (``torch_indoorbev.bench``'s step) on our inputs."""
+    sys.path.insert(0, PEER_DIR)
+    import torch
+    import torch_indoorbev as peer
+
+    torch.set_num_threads(2)
+    model = peer.build(preset, up_mode=up_mode)
+    cfg = Config.preset(preset)
+    pts, valid = (torch.from_numpy(a) for a in make_inputs(cfg, batch))
+    if mode == "train":
+        model.train()
+        opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
+
+        def run():
+            opt.zero_grad(set_to_none=True)
+            peer.dummy_loss(model(pts, valid)).backward()
+            opt.step()
+    else:
+        model.eval()
+
+        def run():
+            with torch.inference_mode():
+                peer.dummy_loss(model(pts, valid))
+
+    return run, sum(p.numel() for p in model.parameters())
+
+
+def _peak_rss_gib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--preset", default="small", choices=["tiny", "small", "paper"])
+    ap.add_argument("--mode", default="train", choices=["fwd", "train"])
+    ap.add_argument("--batch", type=int, default=4)
+    ap.add_argument("--reps", type=int, default=5, help="0: compile and memory only")
+    ap.add_argument("--warmup", type=int, default=1)
+    ap.add_argument("--set", action="append", default=[], help="config override a.b=v")
+    ap.add_argument("--bf16", action="store_true", help="bfloat16 computation (ours)")
+    ap.add_argument("--peer", default="convT2", help="comma list of peer up_modes, or none")
+    ap.add_argument("--only", default="both", choices=["both", "jax", "torch"])
+    a = ap.parse_args(argv)
+
+    cfg = apply_overrides(Config.preset(a.preset), a.set)
+    label = f"{a.preset} {a.mode} B={a.batch}" + (f" [{' '.join(a.set)}]" if a.set else "")
+    runners = {}
+    if a.only != "torch":
+        dtype = jnp.bfloat16 if a.bf16 else jnp.float32
+        run, compile_s, mem, n = build_jax(cfg, a.mode, a.batch, dtype)
+        runners["jax"] = run
+        print(
+            f"{label}: jax {jax.__version__} {jax.devices()[0].platform} params {n / 1e6:.3f} M, "
+            f"compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB",
+            flush=True,
+        )
+    peers = [] if a.only == "jax" or a.peer == "none" else a.peer.split(",")
+    for up_mode in peers:
+        if a.preset == "tiny":
+            raise SystemExit("the peer has no tiny preset")
+        run, n = build_peer(a.preset, a.mode, a.batch, up_mode)
+        runners[f"torch[{up_mode}]"] = run
+        print(f"{label}: torch[{up_mode}] params {n / 1e6:.3f} M", flush=True)
+
+    if a.reps == 0:  # compile and memory figures only
+        return
+    for run in runners.values():
+        for _ in range(a.warmup):
+            run()
+    times = {k: [] for k in runners}
+    for _ in range(a.reps):  # interleaved: each rep runs every side once
+        for k, run in runners.items():
+            t0 = time.perf_counter()
+            run()
+            times[k].append(time.perf_counter() - t0)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    for k, v in times.items():
+        runs = " ".join(f"{t * 1e3:.0f}" for t in v)
+        extra = f"  ({1 / med[k]:.2f} steps/s)" if a.mode == "train" else ""
+        print(f"{label}: {k:18s} median {med[k] * 1e3:9.1f} ms  runs [{runs}]{extra}")
+    if "jax" in med:
+        for k in med:
+            if k != "jax":
+                print(f"{label}: ratio {k} / jax = {med[k] / med['jax']:.2f}x")
+    print(
+        f"{label}: peak RSS of this process {_peak_rss_gib():.2f} GiB "
+        f"(sides: {', '.join(runners)}), load average {os.getloadavg()[0]:.1f}"
+    )
+
+
+if __name__ == "__main__":
+    main()

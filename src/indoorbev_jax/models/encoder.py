@@ -1,0 +1,119 @@
+"""AF-PCCN: the axis-fusion point encoder that turns a padded point cloud into a BEV map.
+
+DESIGN section 5. Every valid point gets X-Z and Y-Z view features, two learned branches
+and a learned fusion; the per-point features are scattered to the grid with a segment max
+over flattened cell ids (no per-pillar padding), empty cells get one learned vector, and a
+LayerNorm over channels gives ``F_bev`` of shape [B, H, W, C_enc].
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from indoorbev_jax.config import GridConfig
+
+
+def point_cells(
+    points: jax.Array, valid: jax.Array, grid: GridConfig
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """Cell indices and usability of each point (DESIGN section 2).
+
+    Args:
+      points: float [B, N, 4], (x, y, z, intensity) in the lidar frame.
+      valid: bool [B, N].
+      grid: the BEV grid.
+
+    Returns:
+      ``(points, ok, row, col)``: points with unusable entries zeroed [B, N, 4]; ok bool
+      [B, N], True for valid, finite points inside the workspace (x, y half-open, z closed);
+      row, col int32 [B, N] (clipped into the grid, meaningful only where ok).
+    """
+    h, w = grid.shape
+    finite = jnp.all(jnp.isfinite(points), axis=-1)
+    pts = jnp.where(finite[..., None], points, 0.0)
+    x, y, z = pts[..., 0], pts[..., 1], pts[..., 2]
+    (x0, x1), (y0, y1), (z0, z1) = grid.x_range, grid.y_range, grid.z_range
+    ok = valid & finite & (x >= x0) & (x < x1) & (y >= y0) & (y < y1) & (z >= z0) & (z <= z1)
+    col = jnp.clip(jnp.floor((x - x0) / grid.cell_size).astype(jnp.int32), 0, w - 1)
+    row = jnp.clip(jnp.floor((y - y0) / grid.cell_size).astype(jnp.int32), 0, h - 1)
+    pts = jnp.where(ok[..., None], pts, 0.0)  # NaN / far-away points must not reach the MLPs
+    return pts, ok, row, col
+
+
+class _Branch(nn.Module):
+    """Dense -> LayerNorm -> ReLU -> Dense on one axis view."""
+
+    features: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        x = nn.Dense(self.features, name="fc1")(x)
+        x = nn.relu(nn.LayerNorm(name="norm")(x))
+        return nn.Dense(self.features, name="fc2")(x)
+
+
+class AFPCCN(nn.Module):
+    """Axis-Fusion Point Cloud Compact Network + BEV scatter + LayerNorm.
+
+    Attributes:
+      grid: the BEV grid (H x W from ``grid.shape``).
+      channels: C_enc.
+    """
+
+    grid: GridConfig
+    channels: int = 64
+
+    @nn.compact
+    def __call__(self, points: jax.Array, valid: jax.Array) -> jax.Array:
+        """Encode points into the BEV map.
+
+        Args:
+          points: float [B, N, 4], (x, y, z, intensity); NaN/Inf and out-of-range points are
+            ignored, as are points with ``valid`` False.
+          valid: bool [B, N].
+
+        Returns:
+          F_bev of shape [B, H, W, C_enc], float32.
+        """
+        if points.ndim != 3 or points.shape[-1] != 4:
+            raise ValueError(f"points must be [B, N, 4], got shape {points.shape}")
+        if valid.shape != points.shape[:2]:
+            raise ValueError(f"valid must be [B, N] = {points.shape[:2]}, got {valid.shape}")
+        b, n, _ = points.shape
+        h, w = self.grid.shape
+        v = self.grid.cell_size
+        pts, ok, row, col = point_cells(points.astype(jnp.float32), valid, self.grid)
+        x, y, z, intensity = (pts[..., k] for k in range(4))
+
+        # Flattened cell id over the whole batch; unusable points get an out-of-range id,
+        # which the segment ops drop.
+        n_cells = b * h * w
+        cell = jnp.arange(b, dtype=jnp.int32)[:, None] * (h * w) + row * w + col  # [B, N]
+        cell = jnp.where(ok, cell, n_cells).reshape(-1)  # [B*N]
+
+        count = jax.ops.segment_sum(ok.reshape(-1).astype(jnp.float32), cell, n_cells)
+        z_sum = jax.ops.segment_sum(z.reshape(-1), cell, n_cells)
+        z_mean = z_sum / jnp.maximum(count, 1.0)  # [B*H*W]
+        dz = z - jnp.take(z_mean, cell, mode="fill", fill_value=0.0).reshape(b, n)
+        # Offsets to the cell centre in cell units, so they stay O(1) at any cell size.
+        dx = (x - (self.grid.x_range[0] + (col + 0.5) * v)) / v
+        dy = (y - (self.grid.y_range[0] + (row + 0.5) * v)) / v
+        rng = jnp.sqrt(x * x + y * y)
+        f_xz = jnp.stack([x, z, dx, dz, rng, intensity], axis=-1)  # [B, N, 6]
+        f_yz = jnp.stack([y, z, dy, dz, rng, intensity], axis=-1)  # [B, N, 6]
+
+        half = self.channels // 2
+        feats = jnp.concatenate(
+            [_Branch(half, name="branch_xz")(f_xz), _Branch(half, name="branch_yz")(f_yz)], -1
+        )
+        feats = nn.Dense(self.channels, name="fuse")(feats)  # [B, N, C]
+        self.sow("intermediates", "point_features", feats)
+
+        bev = jax.ops.segment_max(feats.reshape(b * n, -1), cell, n_cells)  # [B*H*W, C]
+        empty = self.param("empty", nn.initializers.normal(0.02), (self.channels,))
+        bev = jnp.where((count > 0)[:, None], bev, empty[None, :])
+        bev = bev.reshape(b, h, w, self.channels)  # [B, H, W, C]
+        self.sow("intermediates", "bev_raw", bev)
+        return nn.LayerNorm(name="norm")(bev)

@@ -1,0 +1,257 @@
+"""AdaptiveUpsampler and SimpleMaskHead: backbone map -> per-query classes, boxes and masks.
+
+DESIGN section 7. The upsampler brings the last Swin stage back to H x W with learned 2x
+steps (a dense layer + depth-to-space: the same map as a kernel-2 stride-2 transposed
+convolution, whose backward is pathologically slow on CPU). The head projects to C_hid
+(``F_proj``), refines N_q learned queries with post-norm decoder layers (self-attention,
+cross-attention to ``F_proj`` + a 2D sine code, FFN) and reads every layer's queries out
+into class logits, dims, pos, yaw and mask logits ``<m_j, F_proj>``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from indoorbev_jax.config import HeadConfig
+
+
+def depth_to_space(x: jax.Array, s: int) -> jax.Array:
+    """[B, R, R, s*s*C] -> [B, s*R, s*R, C], channel blocks ordered (row offset, col offset)."""
+    b, h, w, c = x.shape
+    c //= s * s
+    x = x.reshape(b, h, w, s, s, c)  # [B, R, R, s_row, s_col, C]
+    x = x.transpose(0, 1, 3, 2, 4, 5)  # [B, R, s_row, R, s_col, C]
+    return x.reshape(b, h * s, w * s, c)
+
+
+class AdaptiveUpsampler(nn.Module):
+    """Learned 2x steps from the last backbone stage to the padded input resolution.
+
+    Each step: Dense(4 C') + depth-to-space + GELU, channels halved (never below
+    ``min_channels``). With ``skips`` (FPN-style), a stage map of the same resolution is
+    added through a lateral Dense after each step.
+
+    Attributes:
+      steps: number of 2x steps (log2 of the backbone's total stride).
+      min_channels: channel floor (C_hid).
+      skips: add lateral connections from earlier stages.
+      dtype: computation dtype.
+    """
+
+    steps: int
+    min_channels: int
+    skips: bool = False
+    dtype: jnp.dtype = jnp.float32
+
+    @nn.compact
+    def __call__(self, stages: dict[int, jax.Array]) -> jax.Array:
+        """Upsample.
+
+        Args:
+          stages: stage index -> [B, R_k, R_k, C_k] from ``SwinBackbone``.
+
+        Returns:
+          [B, R, R, C'] at the padded input resolution R.
+        """
+        last = max(stages)
+        x = stages[last]
+        by_res = {v.shape[1]: (k, v) for k, v in stages.items() if k != last}
+        for i in range(self.steps):
+            c = max(x.shape[-1] // 2, self.min_channels)
+            x = nn.Dense(4 * c, dtype=self.dtype, name=f"up{i}")(x)
+            x = nn.gelu(depth_to_space(x, 2))  # [B, 2R, 2R, C']
+            if self.skips and x.shape[1] in by_res:
+                k, skip = by_res[x.shape[1]]
+                x = x + nn.Dense(c, dtype=self.dtype, name=f"lateral{k}")(skip)
+        return x
+
+
+def sine_code_1d(n: int, features: int, temperature: float = 10000.0) -> np.ndarray:
+    """DETR's normalised sine code along one axis: float32 [n, features].
+
+    Position p in 0..n-1 maps to (p + 1) / n * 2 pi; channels alternate sin / cos with
+    geometric frequencies.
+    """
+    pos = (np.arange(n, dtype=np.float64) + 1.0) / n * 2.0 * math.pi
+    dim_t = temperature ** (2 * (np.arange(features) // 2) / features)
+    arg = pos[:, None] / dim_t  # [n, features]
+    code = np.where(np.arange(features) % 2 == 0, np.sin(arg), np.cos(arg))
+    return code.astype(np.float32)
+
+
+def _pool_weights(n: int, s: int) -> np.ndarray:
+    """[ceil(n/s), n]: row k averages cells [k s, min((k+1) s, n))."""
+    m = -(-n // s)
+    w = np.zeros((m, n), np.float32)
+    for k in range(m):
+        cells = np.arange(k * s, min((k + 1) * s, n))
+        w[k, cells] = 1.0 / len(cells)
+    return w
+
+
+def pool_memory(f: jax.Array, s: int) -> jax.Array:
+    """s x s average pooling of [B, H, W, C] -> [B, ceil(H/s), ceil(W/s), C] (ragged edges
+    average over the cells they hold)."""
+    if s == 1:
+        return f
+    b, h, w, c = f.shape
+    hp, wp = -(-h // s) * s, -(-w // s) * s
+    f = jnp.pad(f, ((0, 0), (0, hp - h), (0, wp - w), (0, 0)))
+    f = f.reshape(b, hp // s, s, wp // s, s, c).sum(axis=(2, 4))  # [B, H/s, W/s, C]
+    count = np.outer(
+        np.minimum(s, h - s * np.arange(hp // s)), np.minimum(s, w - s * np.arange(wp // s))
+    )
+    return f / jnp.asarray(count[None, :, :, None], f.dtype)
+
+
+def positional_code(h: int, w: int, features: int, s: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Separable 2D sine code of an (s-pooled) H x W map.
+
+    Returns:
+      ``(code_y, code_x)`` of shapes [H', features/2] and [W', features/2]; the code of cell
+      (i, j) is ``concat(code_y[i], code_x[j])`` (y half first, as in DETR). With s > 1 each
+      half is averaged over the pooled cells, like the features.
+    """
+    half = features // 2
+    cy, cx = sine_code_1d(h, half), sine_code_1d(w, half)
+    if s > 1:
+        cy, cx = _pool_weights(h, s) @ cy, _pool_weights(w, s) @ cx
+    return cy, cx
+
+
+class Attention(nn.Module):
+    """Multi-head attention with separate query / key / value inputs.
+
+    Attributes:
+      num_heads: heads h.
+      dtype: computation dtype.
+    """
+
+    num_heads: int
+    dtype: jnp.dtype = jnp.float32
+
+    @nn.compact
+    def __call__(self, q_in: jax.Array, k_in: jax.Array, v_in: jax.Array) -> jax.Array:
+        """q_in [B, Tq, C], k_in and v_in [B, Tk, C] -> [B, Tq, C]."""
+        b, tq, c = q_in.shape
+        h, d = self.num_heads, c // self.num_heads
+        q = nn.Dense(c, dtype=self.dtype, name="q")(q_in * d**-0.5)
+        k = nn.Dense(c, dtype=self.dtype, name="k")(k_in)
+        v = nn.Dense(c, dtype=self.dtype, name="v")(v_in)
+        # Heads-major layouts with keys as [B, h, d, Tk]: with few queries, long memories
+        # and d = 8, this runs the CPU train step about 2x faster than
+        # jax.nn.dot_product_attention's [B, T, h, d] (measured in experiments/bench_model.py).
+        q = q.reshape(b, tq, h, d).transpose(0, 2, 1, 3)  # [B, h, Tq, d]
+        k = k.reshape(b, -1, h, d).transpose(0, 2, 3, 1)  # [B, h, d, Tk]
+        v = v.reshape(b, -1, h, d).transpose(0, 2, 1, 3)  # [B, h, Tk, d]
+        logits = jnp.einsum("bhqd,bhdk->bhqk", q, k).astype(jnp.float32)  # [B, h, Tq, Tk]
+        weights = jax.nn.softmax(logits, axis=-1).astype(self.dtype)
+        out = jnp.einsum("bhqk,bhkd->bqhd", weights, v).reshape(b, tq, c)
+        return nn.Dense(c, dtype=self.dtype, name="out")(out)
+
+
+class DecoderLayer(nn.Module):
+    """Post-norm DETR decoder layer: self-attention, cross-attention (keys carry the
+    positional code), FFN.
+
+    Attributes:
+      config: head fields (heads, FFN width, remat).
+      dtype: computation dtype.
+    """
+
+    config: HeadConfig
+    dtype: jnp.dtype = jnp.float32
+
+    @nn.compact
+    def __call__(self, t: jax.Array, mem: jax.Array, mem_pos: jax.Array) -> jax.Array:
+        """t [B, Q, C] queries; mem, mem_pos [B, S, C] memory and memory + code -> [B, Q, C]."""
+        cfg = self.config
+        # Remat the cross-attention: its scores over S memory tokens ([B, h, Q, S]) and the
+        # key / value projections ([B, S, C]) dominate the training peak; recomputing them in
+        # the backward pass keeps only one layer's worth alive at a time.
+        cross_cls = nn.remat(Attention) if cfg.remat else Attention
+        t = nn.LayerNorm(dtype=self.dtype, name="norm1")(
+            t + Attention(cfg.num_heads, self.dtype, name="self_attn")(t, t, t)
+        )
+        t = nn.LayerNorm(dtype=self.dtype, name="norm2")(
+            t + cross_cls(cfg.num_heads, self.dtype, name="cross_attn")(t, mem_pos, mem)
+        )
+        y = nn.Dense(cfg.ffn_dim, dtype=self.dtype, name="ffn1")(t)
+        y = nn.Dense(t.shape[-1], dtype=self.dtype, name="ffn2")(nn.relu(y))
+        return nn.LayerNorm(dtype=self.dtype, name="norm3")(t + y)
+
+
+class SimpleMaskHead(nn.Module):
+    """Query-based decoder head with class, box and mask outputs for every decoder layer.
+
+    Attributes:
+      config: head fields.
+      num_classes: foreground classes (logits get one more, the background).
+      dtype: computation dtype.
+    """
+
+    config: HeadConfig
+    num_classes: int
+    dtype: jnp.dtype = jnp.float32
+
+    @nn.compact
+    def __call__(self, feats: jax.Array) -> dict[str, jax.Array]:
+        """Decode.
+
+        Args:
+          feats: upsampled features [B, H, W, C'] on the unpadded grid.
+
+        Returns:
+          dict with logits [L, B, Q, K], dims [L, B, Q, 3], pos [L, B, Q, 3],
+          yaw [L, B, Q, 1], masks [L, B, Q, H, W] (mask logits).
+        """
+        cfg = self.config
+        c, s = cfg.hidden_dim, cfg.memory_stride
+        b, h, w, _ = feats.shape
+        f_proj = nn.Dense(c, dtype=self.dtype, name="input_proj")(feats)
+        f_proj = nn.LayerNorm(dtype=self.dtype, name="input_proj_norm")(f_proj)  # [B, H, W, C]
+
+        # Cross-attention memory: F_proj itself (paper) or its s x s average (memory_stride).
+        mem = pool_memory(f_proj, s)  # [B, H', W', C]
+        hm, wm = mem.shape[1:3]
+        cy, cx = positional_code(h, w, c, s)  # [H', C/2], [W', C/2]
+        code = jnp.concatenate(
+            [
+                jnp.broadcast_to(jnp.asarray(cy, self.dtype)[:, None, :], (hm, wm, c // 2)),
+                jnp.broadcast_to(jnp.asarray(cx, self.dtype)[None, :, :], (hm, wm, c // 2)),
+            ],
+            axis=-1,
+        )  # [H', W', C]
+        mem_pos = (mem + code).reshape(b, hm * wm, c)  # [B, S, C]
+        mem = mem.reshape(b, hm * wm, c)  # [B, S, C]
+
+        query = self.param("query_embed", nn.initializers.normal(1.0), (cfg.num_queries, c))
+        t = jnp.broadcast_to(query.astype(self.dtype), (b, cfg.num_queries, c))
+        outs = []
+        for i in range(cfg.num_layers):
+            t = DecoderLayer(cfg, self.dtype, name=f"decoder{i}")(t, mem, mem_pos)
+            outs.append(t)
+        q = jnp.stack(outs)  # [L, B, Q, C]
+
+        m = nn.relu(nn.Dense(c, dtype=self.dtype, name="mask_embed0")(q))
+        m = nn.relu(nn.Dense(c, dtype=self.dtype, name="mask_embed1")(m))
+        m = nn.Dense(c, dtype=self.dtype, name="mask_embed2")(m)  # [L, B, Q, C]
+        # As one batched [L*Q, C] @ [C, H*W] product per frame: 2-3x faster on CPU than the
+        # plain "lbqc,bhwc->lbqhw" einsum, whose layouts XLA resolves with extra transposes.
+        n_l, n_q = m.shape[0], m.shape[2]
+        m = m.transpose(1, 0, 2, 3).reshape(b, n_l * n_q, c)  # [B, L*Q, C]
+        masks = jnp.einsum("bkc,bcn->bkn", m, f_proj.reshape(b, h * w, c).transpose(0, 2, 1))
+        masks = masks.reshape(b, n_l, n_q, h, w).transpose(1, 0, 2, 3, 4)  # [L, B, Q, H, W]
+        out = {
+            "logits": nn.Dense(self.num_classes + 1, dtype=self.dtype, name="class_head")(q),
+            "dims": nn.Dense(3, dtype=self.dtype, name="dims_head")(q),
+            "pos": nn.Dense(3, dtype=self.dtype, name="pos_head")(q),
+            "yaw": nn.Dense(1, dtype=self.dtype, name="yaw_head")(q),
+            "masks": masks,
+        }
+        return {k: v.astype(jnp.float32) for k, v in out.items()}

@@ -1,0 +1,145 @@
+"""The whole network: output shapes, tracing, invariances, remat and the pooled memory."""
+
+import dataclasses
+import pathlib
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from indoorbev_jax.config import Config
+from indoorbev_jax.models import IndoorBEV
+from indoorbev_jax.models.head import pool_memory, positional_code, sine_code_1d
+from indoorbev_jax.types import Predictions
+
+FAST = {"xla_backend_optimization_level": 0}
+TINY = Config.tiny()
+MODEL = IndoorBEV(TINY)
+TRACES = []
+
+
+def _forward(params, points, valid):
+    TRACES.append(points.shape)  # runs once per trace, not per call
+    return MODEL.apply(params, points, valid)
+
+
+FORWARD = jax.jit(_forward, compiler_options=FAST)
+
+
+def _points(seed: int, b: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    lo, hi = np.array([-5, -5, -3, 0.0]), np.array([5, 5, 3, 1.0])
+    pts = (lo + rng.uniform(size=(b, n, 4)) * (hi - lo)).astype(np.float32)
+    return pts, rng.uniform(size=(b, n)) > 0.05
+
+
+@pytest.fixture(scope="module")
+def params():
+    pts, valid = _points(0, 2, 256)
+    return jax.jit(MODEL.init, compiler_options=FAST)(jax.random.key(0), pts, valid)
+
+
+def test_paper_preset_shapes_and_parameter_count_from_eval_shape():
+    cfg = Config.paper()
+    model = IndoorBEV(cfg)
+    pts = jax.ShapeDtypeStruct((2, 4096, 4), jnp.float32)
+    valid = jax.ShapeDtypeStruct((2, 4096), jnp.bool_)
+    params = jax.eval_shape(model.init, jax.random.key(0), pts, valid)
+    out = jax.eval_shape(model.apply, params, pts, valid)
+    assert isinstance(out, Predictions)
+    assert cfg.grid.shape == (500, 500)
+    assert out.logits.shape == (4, 2, 30, 10)
+    assert out.dims.shape == (4, 2, 30, 3) and out.pos.shape == (4, 2, 30, 3)
+    assert out.yaw.shape == (4, 2, 30, 1)
+    assert out.masks.shape == (4, 2, 30, 500, 500)
+    assert all(x.dtype == jnp.float32 for x in jax.tree.leaves(out))
+    n = sum(x.size for x in jax.tree.leaves(params))
+    # docs/MODEL.md states the count; keep the two in step.
+    doc = pathlib.Path(__file__).parents[2] / "docs" / "MODEL.md"
+    stated = re.search(r"paper preset has ([\d,]+) parameters", doc.read_text())
+    assert stated and int(stated.group(1).replace(",", "")) == n, n
+
+
+def test_tiny_forward_traces_once_per_shape_and_ignores_order_and_padding(params):
+    h, w = TINY.grid.shape
+    pts, valid = _points(1, 2, 256)
+    TRACES.clear()
+    out = FORWARD(params, pts, valid)
+    L, Q, K = TINY.head.num_layers, TINY.head.num_queries, TINY.num_classes + 1
+    assert out.logits.shape == (L, 2, Q, K) and out.masks.shape == (L, 2, Q, h, w)
+    assert out.yaw.shape == (L, 2, Q, 1) and out.dims.shape == (L, 2, Q, 3)
+    for leaf in jax.tree.leaves(out):
+        assert np.isfinite(np.asarray(leaf)).all()
+
+    perm = np.random.default_rng(2).permutation(256)
+    shuffled = FORWARD(params, pts[:, perm], valid[:, perm])  # same shape: no new trace
+    assert len(TRACES) == 1
+    # More slots, all unusable (flagged invalid, NaN, or outside the workspace): new shape,
+    # one more trace, same predictions.
+    junk = np.full((2, 64, 4), 7.0, np.float32)
+    junk[:, ::2] = np.nan
+    junk_valid = np.zeros((2, 64), bool)
+    junk_valid[:, 1::4] = True  # "valid" but at x = y = 7 m, outside [-5, 5)
+    padded = FORWARD(params, np.concatenate([pts, junk], 1), np.concatenate([valid, junk_valid], 1))
+    FORWARD(params, np.concatenate([pts, junk], 1), np.concatenate([valid, junk_valid], 1))
+    assert TRACES == [(2, 256, 4), (2, 320, 4)]
+    leaves = zip(*(jax.tree.leaves(x) for x in (out, shuffled, padded)), strict=True)
+    for ref, a, b in leaves:
+        np.testing.assert_allclose(np.asarray(a), np.asarray(ref), rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(np.asarray(b), np.asarray(ref), rtol=1e-4, atol=1e-4)
+    # Not a constant network: another frame gives other masks.
+    other = FORWARD(params, *_points(3, 2, 256))
+    assert np.abs(np.asarray(other.masks) - np.asarray(out.masks)).max() > 1e-3
+
+
+def test_remat_changes_neither_outputs_nor_gradients(params):
+    cfg = dataclasses.replace(
+        TINY,
+        backbone=dataclasses.replace(TINY.backbone, remat=True),
+        head=dataclasses.replace(TINY.head, remat=True),
+    )
+    pts, valid = _points(4, 2, 256)
+
+    def loss(model, p):
+        out = model.apply(p, pts, valid)
+        return sum(jnp.mean(jnp.sin(x)) for x in jax.tree.leaves(out))
+
+    grad = jax.jit(
+        lambda p: (jax.value_and_grad(lambda q: loss(MODEL, q))(p),
+                   jax.value_and_grad(lambda q: loss(IndoorBEV(cfg), q))(p)),
+        compiler_options=FAST,
+    )  # fmt: skip
+    (l0, g0), (l1, g1) = grad(params)
+    np.testing.assert_allclose(l1, l0, rtol=1e-6)
+    for a, b in zip(jax.tree.leaves(g0), jax.tree.leaves(g1), strict=True):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-6)
+    assert max(np.abs(np.asarray(a)).max() for a in jax.tree.leaves(g0)) > 0
+
+
+@pytest.mark.parametrize("h,w,s", [(10, 10, 2), (10, 7, 4), (5, 6, 1)])
+def test_pooled_memory_and_code_match_numpy_block_means(h, w, s):
+    f = np.random.default_rng(5).normal(size=(2, h, w, 6)).astype(np.float32)
+    out = np.asarray(pool_memory(jnp.asarray(f), s))
+    hp, wp = -(-h // s), -(-w // s)
+    assert out.shape == (2, hp, wp, 6)
+    for i in range(hp):
+        for j in range(wp):
+            ref = f[:, i * s : (i + 1) * s, j * s : (j + 1) * s].mean((1, 2))
+            np.testing.assert_allclose(out[:, i, j], ref, rtol=1e-5, atol=1e-6)
+    # The pooled code is the block mean of the full-resolution code, half y, half x.
+    cy, cx = positional_code(h, w, 8, s)
+    full = np.concatenate(
+        [np.broadcast_to(sine_code_1d(h, 4)[:, None], (h, w, 4)),
+         np.broadcast_to(sine_code_1d(w, 4)[None], (h, w, 4))], -1,
+    )  # fmt: skip
+    pooled = np.asarray(pool_memory(jnp.asarray(full[None]), s))[0]
+    np.testing.assert_allclose(
+        pooled[..., :4], np.broadcast_to(cy[:, None], (hp, wp, 4)), atol=1e-6
+    )
+    np.testing.assert_allclose(pooled[..., 4:], np.broadcast_to(cx[None], (hp, wp, 4)), atol=1e-6)
+    # DETR's code: sin on even channels, cos on odd ones, position (p + 1) / n * 2 pi.
+    p = (np.arange(h) + 1) / h * 2 * np.pi
+    np.testing.assert_allclose(sine_code_1d(h, 4)[:, 0], np.sin(p), atol=1e-6)
+    np.testing.assert_allclose(sine_code_1d(h, 4)[:, 3], np.cos(p / 10000**0.5), atol=1e-6)
