@@ -109,7 +109,8 @@ def test_corrupt_latest_checkpoint_falls_back(tmp_path, caplog):
 SHARDED = textwrap.dedent(
     """
     import os, sys
-    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    flags = os.environ.get("XLA_FLAGS", "")
+    os.environ["XLA_FLAGS"] = flags + " --xla_force_host_platform_device_count=4"
     import jax, jax.numpy as jnp, numpy as np
     from indoorbev_jax import train as T
     from indoorbev_jax.config import Config

@@ -109,16 +109,22 @@ def _set_learning_rate(opt_state, lr: jax.Array):
 
 
 def init_state(config: Config, key: jax.Array) -> TrainState:
-    """Fresh parameters and optimizer state for ``config``."""
+    """Fresh parameters and optimizer state for ``config`` (one jitted program: run
+    eagerly, ``init`` would compile hundreds of small ones)."""
     model = IndoorBEV(config)
     n = config.data.max_points
-    params = model.init(key, jnp.zeros((1, n, 4)), jnp.zeros((1, n), bool))
-    return TrainState(
-        step=jnp.int32(0),
-        params=params,
-        opt_state=make_optimizer(config).init(params),
-        skipped=jnp.int32(0),
-    )
+
+    @jax.jit
+    def init(key):
+        params = model.init(key, jnp.zeros((1, n, 4)), jnp.zeros((1, n), bool))
+        return TrainState(
+            step=jnp.int32(0),
+            params=params,
+            opt_state=make_optimizer(config).init(params),
+            skipped=jnp.int32(0),
+        )
+
+    return init(key)
 
 
 def _all_finite(tree) -> jax.Array:
