@@ -375,7 +375,12 @@ class MetricsLog:
         self.tb = SummaryWriter(str(Path(workdir) / "tb"), purge_step=resume_step + 1)
 
     def write(self, step: int, kind: str, values: dict) -> None:
-        record = {"step": step, "kind": kind, **values}
+        # Undefined metrics (NaN) are written as null: strict JSON.
+        clean = {
+            k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+            for k, v in values.items()
+        }
+        record = {"step": step, "kind": kind, **clean}
         with self.path.open("a") as f:
             f.write(json.dumps(record) + "\n")
         for name, value in values.items():

@@ -1,0 +1,89 @@
+"""Train-step throughput per preset, and K vmapped models against K sequential runs.
+
+    python experiments/bench_train.py --presets tiny small --steps 10 --sweep-k 4
+
+One simulated batch per preset (``indoorbev_sim.generate_batch``) is reused for every step,
+so the figures are the jitted step alone (augment -> forward -> match -> loss -> update).
+The sweep rows run the K-way vmapped step and K single-model steps interleaved, median of
+``--steps`` rounds each, and print the ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import time
+
+import jax
+
+from indoorbev_jax.config import Config
+from indoorbev_jax.sweep import init_sweep, make_sweep_step, stack_hypers
+from indoorbev_jax.train import Hyper, init_state, make_train_step
+
+
+def _time(fn) -> float:
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    return time.perf_counter() - start
+
+
+def bench_preset(name: str, steps: int, batch_size: int | None, sweep_k: int) -> None:
+    from indoorbev_sim.generate import jitted_generate
+
+    config = Config.preset(name)
+    if batch_size:
+        config = dataclasses.replace(
+            config, train=dataclasses.replace(config.train, batch_size=batch_size)
+        )
+    b = config.train.batch_size
+    batch, _ = jitted_generate(config, "train", b)(jax.random.key(0))
+    key = jax.random.key(1)
+    hyper = Hyper.from_config(config)
+    state = init_state(config, jax.random.key(0))
+    step = jax.jit(make_train_step(config))
+    compile_s = _time(lambda: step.lower(state, batch, key, hyper).compile())
+    state, _ = step(state, batch, key, hyper)  # warm-up
+    times = []
+    for _ in range(steps):
+        t = _time(lambda: step(state, batch, key, hyper))
+        times.append(t)
+    med = statistics.median(times)
+    print(
+        f"{name:6s} batch {b}: compile {compile_s:.1f} s, step median {1e3 * med:.0f} ms "
+        f"over {steps} -> {1 / med:.2f} steps/s, {b / med:.1f} samples/s",
+        flush=True,
+    )
+    if sweep_k <= 1:
+        return
+    hypers = stack_hypers(config, [config.train.learning_rate] * sweep_k, {})
+    states = init_sweep(config, sweep_k, jax.random.key(0))
+    sweep = make_sweep_step(config)
+    sweep_compile = _time(lambda: sweep.lower(states, batch, key, hypers).compile())
+    states, _ = sweep(states, batch, key, hypers)
+    vmapped, sequential = [], []
+    for _ in range(steps):
+        vmapped.append(_time(lambda: sweep(states, batch, key, hypers)))
+        sequential.append(_time(lambda: [step(state, batch, key, hyper) for _ in range(sweep_k)]))
+    v, s = statistics.median(vmapped), statistics.median(sequential)
+    print(
+        f"{name:6s} sweep K={sweep_k}: compile {sweep_compile:.1f} s, vmapped {1e3 * v:.0f} ms "
+        f"vs {sweep_k} sequential {1e3 * s:.0f} ms per round -> {s / v:.2f}x",
+        flush=True,
+    )
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--presets", nargs="+", default=["tiny", "small"])
+    p.add_argument("--steps", type=int, default=10)
+    p.add_argument("--batch-size", type=int, default=None)
+    p.add_argument("--sweep-k", type=int, default=4)
+    args = p.parse_args(argv)
+    print(f"devices: {jax.devices()}")
+    for name in args.presets:
+        bench_preset(name, args.steps, args.batch_size, args.sweep_k)
+
+
+if __name__ == "__main__":
+    main()
