@@ -26,7 +26,10 @@ lint: $(STAMP)
 	$(PY) -m ruff check src sim experiments tests
 	$(PY) -m ruff format --check src sim experiments tests
 
+# Benchmark-only: the PyTorch peer needs torch (a CPU wheel of 2.13.0 ships with these
+# machines); bench_lidar compares with mujoco-lidar when it is installed and says so if not.
 bench: $(STAMP)
+	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q torch==2.13.0
 	for b in experiments/bench_*.py; do $(PY) $$b || exit 1; done
 
 clean:
