@@ -30,6 +30,7 @@ from indoorbev_sim import scenes as scenes_mod
 
 from indoorbev_jax.config import Config, SimConfig
 from indoorbev_jax.data.rasterize import instance_ids_from_masks
+from indoorbev_jax.geometry import in_workspace
 from indoorbev_jax.types import Batch, Targets
 
 
@@ -89,15 +90,6 @@ def _yaw_matrix(yaw: jax.Array) -> jax.Array:
     )  # [..., 3, 3]
 
 
-def _in_workspace(xyz: jax.Array, config: Config) -> jax.Array:
-    g = config.grid
-    return (
-        (xyz[..., 0] >= g.x_range[0]) & (xyz[..., 0] < g.x_range[1])
-        & (xyz[..., 1] >= g.y_range[0]) & (xyz[..., 1] < g.y_range[1])
-        & (xyz[..., 2] >= g.z_range[0]) & (xyz[..., 2] <= g.z_range[1])
-    )  # fmt: skip
-
-
 def simulate(
     key: jax.Array, config: Config, scene: scenes_mod.Scene, time: jax.Array, frame_index
 ) -> tuple[Batch, FrameInfo]:
@@ -129,7 +121,7 @@ def simulate(
         dropout_prob=sim.dropout,
     )  # fmt: skip
     scan = sensor.scan(model, data, pose, directions, key, sensor_cfg, reflectivity=refl)
-    valid = scan.valid & _in_workspace(scan.points[..., :3], config)  # [B, R]
+    valid = scan.valid & in_workspace(scan.points[..., :3], config.grid)  # [B, R]
     geom_slot = jnp.asarray(tpl.geom_slot)
     point_slot = jnp.where(scan.geom_id >= 0, geom_slot[jnp.maximum(scan.geom_id, 0)], -1)
 

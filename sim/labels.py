@@ -35,7 +35,8 @@ from indoorbev_sim import objects
 from indoorbev_sim.scenes import Scene, SceneTemplate, world_prims
 
 from indoorbev_jax.config import Config, GridConfig
-from indoorbev_jax.data.rasterize import BOUNDARY_EPS, cell_centers
+from indoorbev_jax.data.rasterize import BOUNDARY_EPS
+from indoorbev_jax.geometry import cell_centers, wrap_angle
 
 VISIBLE_FULL, VISIBLE_PART = 0.75, 0.4  # visibility thresholds of occlusion levels 0 and 1
 
@@ -61,10 +62,6 @@ class ObjectLabels:
     visibility: jax.Array
     occlusion: jax.Array
     labelled: jax.Array
-
-
-def wrap_angle(a: jax.Array) -> jax.Array:
-    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
 
 
 def stadium_masks(p0: jax.Array, p1: jax.Array, radius: jax.Array, grid: GridConfig) -> jax.Array:

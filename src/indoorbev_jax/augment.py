@@ -15,7 +15,8 @@ import numpy as np
 from flax import struct
 
 from indoorbev_jax.config import AugmentConfig, GridConfig
-from indoorbev_jax.data.rasterize import cell_centers, instance_ids_from_masks
+from indoorbev_jax.data.rasterize import instance_ids_from_masks
+from indoorbev_jax.geometry import cell_centers, cell_index, in_workspace, wrap_angle
 from indoorbev_jax.types import Batch, Targets
 
 # Points this close outside a box still belong to it (lidar hits lie on its surface).
@@ -28,8 +29,14 @@ def _rot(theta: jax.Array) -> jax.Array:
     return jnp.stack([jnp.stack([c, -s], -1), jnp.stack([s, c], -1)], -2)
 
 
-def wrap_angle(a: jax.Array) -> jax.Array:
-    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
+def _sample_masks(masks: jax.Array, x: jax.Array, y: jax.Array, grid: GridConfig) -> jax.Array:
+    """masks [M, H, W] read at the grid cells under points (x, y) of shape [M, ...];
+    False where a point falls outside the grid."""
+    row, col, inside = cell_index(x, y, grid)
+    m = masks.shape[0]
+    flat = (row * grid.shape[1] + col).reshape(m, -1)
+    out = jnp.take_along_axis(masks.reshape(m, -1), flat, axis=1)
+    return out.reshape(x.shape) & inside
 
 
 def warp_masks(masks: jax.Array, inverse: jax.Array, grid: GridConfig) -> jax.Array:
@@ -44,20 +51,13 @@ def warp_masks(masks: jax.Array, inverse: jax.Array, grid: GridConfig) -> jax.Ar
       bool [M, H, W]: each destination cell takes the source cell under its mapped centre,
       False where that falls outside the grid.
     """
-    h, w = grid.shape
     xs, ys = cell_centers(grid)
     px, py = jnp.meshgrid(xs, ys)  # [H, W]
     sx = inverse[:, 0, 0, None, None] * px + inverse[:, 0, 1, None, None] * py
     sy = inverse[:, 1, 0, None, None] * px + inverse[:, 1, 1, None, None] * py
     sx = sx + inverse[:, 0, 2, None, None]  # [M, H, W]
     sy = sy + inverse[:, 1, 2, None, None]
-    j = jnp.floor((sx - grid.x_range[0]) / grid.cell_size).astype(jnp.int32)
-    i = jnp.floor((sy - grid.y_range[0]) / grid.cell_size).astype(jnp.int32)
-    inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-    flat = jnp.clip(i, 0, h - 1) * w + jnp.clip(j, 0, w - 1)  # [M, H, W]
-    src = masks.reshape(masks.shape[0], h * w)
-    out = jnp.take_along_axis(src, flat.reshape(masks.shape[0], h * w), axis=1)
-    return out.reshape(masks.shape) & inside
+    return _sample_masks(masks, sx, sy, grid)
 
 
 def points_in_boxes(points: jax.Array, pos, dims, yaw, valid, margin=BOX_MARGIN) -> jax.Array:
@@ -69,19 +69,8 @@ def points_in_boxes(points: jax.Array, pos, dims, yaw, valid, margin=BOX_MARGIN)
     return inside & valid[:, None]
 
 
-def _in_workspace(xyz: jax.Array, grid: GridConfig) -> jax.Array:
-    return (
-        (xyz[..., 0] >= grid.x_range[0])
-        & (xyz[..., 0] < grid.x_range[1])
-        & (xyz[..., 1] >= grid.y_range[0])
-        & (xyz[..., 1] < grid.y_range[1])
-        & (xyz[..., 2] >= grid.z_range[0])
-        & (xyz[..., 2] <= grid.z_range[1])
-    )
-
-
 def _finish(points, point_valid, targets: Targets, grid: GridConfig) -> Batch:
-    point_valid = point_valid & _in_workspace(points, grid)
+    point_valid = point_valid & in_workspace(points, grid)
     points = jnp.where(point_valid[:, None], points, 0.0)
     masks = targets.masks & targets.valid[:, None, None]
     targets = targets.replace(
@@ -252,7 +241,6 @@ def build_object_database(
     """
     s = patch_cells or int(np.ceil(4.0 / grid.cell_size))
     local_centres = _local_patch_centres(s, grid.cell_size)  # [S, S, 2]
-    h, w = grid.shape
 
     def one_frame(frame_points, frame_valid, t: Targets):
         inside = points_in_boxes(frame_points, t.pos, t.dims, t.yaw, t.valid)  # [M, N]
@@ -267,12 +255,7 @@ def build_object_database(
         )
         # Local patch cell -> world -> grid cell (nearest), like warp_masks.
         world = jnp.einsum("mij,abj->mabi", _rot(t.yaw), local_centres) + t.pos[:, None, None, :2]
-        j = jnp.floor((world[..., 0] - grid.x_range[0]) / grid.cell_size).astype(jnp.int32)
-        i = jnp.floor((world[..., 1] - grid.y_range[0]) / grid.cell_size).astype(jnp.int32)
-        ok = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-        flat = (jnp.clip(i, 0, h - 1) * w + jnp.clip(j, 0, w - 1)).reshape(i.shape[0], -1)
-        fp = jnp.take_along_axis(t.masks.reshape(t.masks.shape[0], -1), flat, axis=1)
-        fp = fp.reshape(i.shape) & ok
+        fp = _sample_masks(t.masks, world[..., 0], world[..., 1], grid)  # [M, S, S]
         return jnp.where(keep[..., None], local, 0.0), keep, fp
 
     pts, keep, fps = jax.jit(jax.vmap(one_frame))(batch.points, batch.point_valid, batch.targets)
@@ -299,7 +282,6 @@ def gt_sampling(
     (walls, unlabelled clutter). Pasted objects take free target slots and free point
     slots; scene points under a pasted footprint and inside its height are removed.
     """
-    h, w = grid.shape
     d_count, s = database.footprints.shape[0], database.footprints.shape[1]
     n_attempts = cfg.gt_sampling_attempts
     xs, ys = cell_centers(grid)
@@ -314,11 +296,6 @@ def gt_sampling(
         ok = (a >= 0) & (a < s) & (b >= 0) & (b < s)
         return database.footprints[d, jnp.clip(a, 0, s - 1), jnp.clip(b, 0, s - 1)] & ok
 
-    def point_cells(points):
-        j = jnp.floor((points[:, 0] - grid.x_range[0]) / grid.cell_size).astype(jnp.int32)
-        i = jnp.floor((points[:, 1] - grid.y_range[0]) / grid.cell_size).astype(jnp.int32)
-        return jnp.clip(i, 0, h - 1), jnp.clip(j, 0, w - 1)
-
     def paste(carry, key):
         points, valid, t = carry
         k_d, k_xy, k_yaw = jax.random.split(key, 3)
@@ -330,7 +307,7 @@ def gt_sampling(
         fps = jax.vmap(footprint_at, in_axes=(None, 0, 0, 0))(d, xy[:, 0], xy[:, 1], yaw)
         occupied = (t.masks & t.valid[:, None, None]).any(0)
         hits_object = (fps & occupied).any((1, 2))
-        ci, cj = point_cells(points)
+        ci, cj, _ = cell_index(points[:, 0], points[:, 1], grid)
         floor_z = database.z[d] - 0.5 * database.dims[d, 2] + 0.05
         top_z = database.z[d] + 0.5 * database.dims[d, 2]
         in_height = (points[:, 2] > floor_z) & (points[:, 2] <= top_z) & valid  # [N]

@@ -32,13 +32,12 @@ cells, so the targets need no interpolation.
 
 from __future__ import annotations
 
-import math
-
 import jax
 import jax.numpy as jnp
 
 from indoorbev_jax import matching
 from indoorbev_jax.config import LossConfig
+from indoorbev_jax.geometry import wrap_angle
 from indoorbev_jax.types import Predictions, Targets
 
 TERMS: tuple[str, ...] = ("cls", "dice", "focal", "dims", "pos", "yaw")
@@ -49,11 +48,6 @@ _OVERSAMPLE_RATIO = 3.0
 _IMPORTANCE_RATIO = 0.75
 # Frozen, so one shared default instance is safe.
 DEFAULT_CONFIG = LossConfig()
-
-
-def wrap_angle(angle: jax.Array) -> jax.Array:
-    """Angle wrapped to [-pi, pi)."""
-    return jnp.remainder(angle + math.pi, 2 * math.pi) - math.pi
 
 
 def _random_cells(key: jax.Array, shape: tuple[int, ...], num_cells: int) -> jax.Array:

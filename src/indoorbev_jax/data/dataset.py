@@ -27,6 +27,7 @@ import numpy as np
 from indoorbev_jax.config import NUM_CLASSES, Config, GridConfig
 from indoorbev_jax.data import kitti
 from indoorbev_jax.data.rasterize import instance_ids_from_masks, rasterize_boxes
+from indoorbev_jax.geometry import in_workspace
 from indoorbev_jax.types import Batch, Targets
 
 
@@ -47,20 +48,6 @@ class FrameStats:
         return self.raw_points - self.nonfinite_points - self.outside_points - self.dropped_points
 
 
-def points_in_workspace(points: np.ndarray, grid: GridConfig) -> np.ndarray:
-    """bool [N]: finite and inside the x/y/z ranges (max edge of x, y excluded)."""
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    with np.errstate(invalid="ignore"):
-        return (
-            (x >= grid.x_range[0])
-            & (x < grid.x_range[1])
-            & (y >= grid.y_range[0])
-            & (y < grid.y_range[1])
-            & (z >= grid.z_range[0])
-            & (z <= grid.z_range[1])
-        )
-
-
 def pad_points(
     points: np.ndarray, grid: GridConfig, max_points: int
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
@@ -72,7 +59,7 @@ def pad_points(
     """
     points = np.asarray(points, np.float32).reshape(-1, 4)
     finite = np.isfinite(points).all(axis=1)
-    inside = finite & points_in_workspace(points, grid)
+    inside = finite & in_workspace(points, grid)
     keep = np.flatnonzero(inside)
     dropped = max(0, len(keep) - max_points)
     keep = keep[:max_points]

@@ -34,6 +34,7 @@ import numpy as np
 from PIL import Image
 
 from indoorbev_jax.config import DataConfig
+from indoorbev_jax.geometry import wrap_angle
 
 
 class DatasetError(ValueError):
@@ -87,11 +88,6 @@ class ObjectLabels:
     def boxes_bev(self) -> np.ndarray:
         """float32 [M, 5] = (x, y, length, width, yaw), the rasteriser's box format."""
         return np.concatenate([self.pos[:, :2], self.dims[:, :2], self.yaw[:, None]], axis=1)
-
-
-def wrap_angle(a):
-    """Wrap angles to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
 def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:

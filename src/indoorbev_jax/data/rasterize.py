@@ -12,23 +12,11 @@ import jax
 import jax.numpy as jnp
 
 from indoorbev_jax.config import GridConfig
+from indoorbev_jax.geometry import cell_centers
 
 # Slack for "boundary counts as inside": float32 coordinates of at most a few metres carry
 # rounding of ~5e-7 m, so a centre lying exactly on an edge must not fall out by rounding.
 BOUNDARY_EPS = 1e-6
-
-
-def cell_centers(grid: GridConfig) -> tuple[jax.Array, jax.Array]:
-    """Cell-centre coordinates of the grid.
-
-    Returns:
-      (xs, ys): float32 arrays of shape [W] (column centres along x) and [H] (row centres
-      along y).
-    """
-    h, w = grid.shape
-    xs = grid.x_range[0] + (jnp.arange(w, dtype=jnp.float32) + 0.5) * grid.cell_size
-    ys = grid.y_range[0] + (jnp.arange(h, dtype=jnp.float32) + 0.5) * grid.cell_size
-    return xs, ys
 
 
 def box_masks(boxes: jax.Array, grid: GridConfig) -> jax.Array:

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from indoorbev_jax.config import GridConfig
+from indoorbev_jax.geometry import cell_index, in_workspace
 
 
 def point_cells(
@@ -30,14 +31,10 @@ def point_cells(
       [B, N], True for valid, finite points inside the workspace (x, y half-open, z closed);
       row, col int32 [B, N] (clipped into the grid, meaningful only where ok).
     """
-    h, w = grid.shape
     finite = jnp.all(jnp.isfinite(points), axis=-1)
     pts = jnp.where(finite[..., None], points, 0.0)
-    x, y, z = pts[..., 0], pts[..., 1], pts[..., 2]
-    (x0, x1), (y0, y1), (z0, z1) = grid.x_range, grid.y_range, grid.z_range
-    ok = valid & finite & (x >= x0) & (x < x1) & (y >= y0) & (y < y1) & (z >= z0) & (z <= z1)
-    col = jnp.clip(jnp.floor((x - x0) / grid.cell_size).astype(jnp.int32), 0, w - 1)
-    row = jnp.clip(jnp.floor((y - y0) / grid.cell_size).astype(jnp.int32), 0, h - 1)
+    ok = valid & finite & in_workspace(pts, grid)
+    row, col, _ = cell_index(pts[..., 0], pts[..., 1], grid)
     pts = jnp.where(ok[..., None], pts, 0.0)  # NaN / far-away points must not reach the MLPs
     return pts, ok, row, col
 

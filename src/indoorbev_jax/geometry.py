@@ -1,0 +1,60 @@
+"""Grid and angle helpers shared by every stage (DESIGN section 2).
+
+The workspace rule lives here once: x and y half-open ``[min, max)``, z closed
+``[min, max]``; cell (row, col) of a point is ``floor((y - y_min) / v), floor((x - x_min) / v)``.
+``wrap_angle`` and ``in_workspace`` use plain operators, so numpy and JAX arrays both work.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+from indoorbev_jax.config import GridConfig
+
+
+def wrap_angle(a):
+    """Angles wrapped to [-pi, pi) (numpy, JAX or Python floats)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def in_workspace(xyz, grid: GridConfig):
+    """bool [...]: points ``xyz [..., 3+]`` inside the workspace; NaN is outside."""
+    x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
+    return (
+        (x >= grid.x_range[0])
+        & (x < grid.x_range[1])
+        & (y >= grid.y_range[0])
+        & (y < grid.y_range[1])
+        & (z >= grid.z_range[0])
+        & (z <= grid.z_range[1])
+    )
+
+
+def cell_centers(grid: GridConfig) -> tuple[jax.Array, jax.Array]:
+    """Cell-centre coordinates of the grid.
+
+    Returns:
+      (xs, ys): float32 arrays of shape [W] (column centres along x) and [H] (row centres
+      along y).
+    """
+    h, w = grid.shape
+    xs = grid.x_range[0] + (jnp.arange(w, dtype=jnp.float32) + 0.5) * grid.cell_size
+    ys = grid.y_range[0] + (jnp.arange(h, dtype=jnp.float32) + 0.5) * grid.cell_size
+    return xs, ys
+
+
+def cell_index(x: jax.Array, y: jax.Array, grid: GridConfig):
+    """The cells under points (x, y) of any shape.
+
+    Returns:
+      (row, col, inside): int32 row and column clipped into the grid, and bool ``inside``,
+      False where the unclipped cell lies outside the grid.
+    """
+    h, w = grid.shape
+    col = jnp.floor((x - grid.x_range[0]) / grid.cell_size).astype(jnp.int32)
+    row = jnp.floor((y - grid.y_range[0]) / grid.cell_size).astype(jnp.int32)
+    inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+    return jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1), inside
