@@ -160,13 +160,9 @@ class KittiDataset:
         if not (self.root / "label_2").is_dir():
             raise kitti.DatasetError(f"{self.root}: no label_2/ folder, not a dataset root")
         self.ids = kitti.list_frames(self.root) if split is None else kitti.read_split(root, split)
+        paths = {i: kitti.frame_paths(root, i) for i in self.ids}
         missing = [
-            i
-            for i in self.ids
-            if not (
-                kitti.frame_paths(root, i)["labels"].exists()
-                and kitti.frame_paths(root, i)["points"].exists()
-            )
+            i for i, p in paths.items() if not (p["labels"].exists() and p["points"].exists())
         ]
         if missing:
             raise kitti.DatasetError(
