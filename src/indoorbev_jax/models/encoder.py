@@ -14,6 +14,7 @@ import jax.numpy as jnp
 
 from indoorbev_jax.config import GridConfig
 from indoorbev_jax.geometry import cell_index, in_workspace
+from indoorbev_jax.models.layers import Dense
 
 
 def point_cells(
@@ -46,9 +47,9 @@ class _Branch(nn.Module):
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        x = nn.Dense(self.features, name="fc1")(x)
+        x = Dense(self.features, name="fc1")(x)
         x = nn.relu(nn.LayerNorm(name="norm")(x))
-        return nn.Dense(self.features, name="fc2")(x)
+        return Dense(self.features, name="fc2")(x)
 
 
 class AFPCCN(nn.Module):
@@ -105,7 +106,7 @@ class AFPCCN(nn.Module):
         feats = jnp.concatenate(
             [_Branch(half, name="branch_xz")(f_xz), _Branch(half, name="branch_yz")(f_yz)], -1
         )
-        feats = nn.Dense(self.channels, name="fuse")(feats)  # [B, N, C]
+        feats = Dense(self.channels, name="fuse")(feats)  # [B, N, C]
         self.sow("intermediates", "point_features", feats)
 
         bev = jax.ops.segment_max(feats.reshape(b * n, -1), cell, n_cells)  # [B*H*W, C]

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from indoorbev_jax.config import HeadConfig
+from indoorbev_jax.models.layers import Dense
 
 
 def depth_to_space(x: jax.Array, s: int) -> jax.Array:
@@ -63,11 +64,11 @@ class AdaptiveUpsampler(nn.Module):
         by_res = {v.shape[1]: (k, v) for k, v in stages.items() if k != last}
         for i in range(self.steps):
             c = max(x.shape[-1] // 2, self.min_channels)
-            x = nn.Dense(4 * c, dtype=self.dtype, name=f"up{i}")(x)
+            x = Dense(4 * c, dtype=self.dtype, name=f"up{i}")(x)
             x = nn.gelu(depth_to_space(x, 2))  # [B, 2R, 2R, C']
             if self.skips and x.shape[1] in by_res:
                 k, skip = by_res[x.shape[1]]
-                x = x + nn.Dense(c, dtype=self.dtype, name=f"lateral{k}")(skip)
+                x = x + Dense(c, dtype=self.dtype, name=f"lateral{k}")(skip)
         return x
 
 
@@ -140,9 +141,9 @@ class Attention(nn.Module):
         """q_in [B, Tq, C], k_in and v_in [B, Tk, C] -> [B, Tq, C]."""
         b, tq, c = q_in.shape
         h, d = self.num_heads, c // self.num_heads
-        q = nn.Dense(c, dtype=self.dtype, name="q")(q_in * d**-0.5)
-        k = nn.Dense(c, dtype=self.dtype, name="k")(k_in)
-        v = nn.Dense(c, dtype=self.dtype, name="v")(v_in)
+        q = Dense(c, dtype=self.dtype, name="q")(q_in * d**-0.5)
+        k = Dense(c, dtype=self.dtype, name="k")(k_in)
+        v = Dense(c, dtype=self.dtype, name="v")(v_in)
         # Heads-major layouts with keys as [B, h, d, Tk]: with few queries, long memories
         # and d = 8, this runs the CPU train step about 2x faster than
         # jax.nn.dot_product_attention's [B, T, h, d] (measured in experiments/bench_model.py).
@@ -152,7 +153,7 @@ class Attention(nn.Module):
         logits = jnp.einsum("bhqd,bhdk->bhqk", q, k).astype(jnp.float32)  # [B, h, Tq, Tk]
         weights = jax.nn.softmax(logits, axis=-1).astype(self.dtype)
         out = jnp.einsum("bhqk,bhkd->bqhd", weights, v).reshape(b, tq, c)
-        return nn.Dense(c, dtype=self.dtype, name="out")(out)
+        return Dense(c, dtype=self.dtype, name="out")(out)
 
 
 class DecoderLayer(nn.Module):
@@ -181,8 +182,8 @@ class DecoderLayer(nn.Module):
         t = nn.LayerNorm(dtype=self.dtype, name="norm2")(
             t + cross_cls(cfg.num_heads, self.dtype, name="cross_attn")(t, mem_pos, mem)
         )
-        y = nn.Dense(cfg.ffn_dim, dtype=self.dtype, name="ffn1")(t)
-        y = nn.Dense(t.shape[-1], dtype=self.dtype, name="ffn2")(nn.relu(y))
+        y = Dense(cfg.ffn_dim, dtype=self.dtype, name="ffn1")(t)
+        y = Dense(t.shape[-1], dtype=self.dtype, name="ffn2")(nn.relu(y))
         return nn.LayerNorm(dtype=self.dtype, name="norm3")(t + y)
 
 
@@ -213,7 +214,7 @@ class SimpleMaskHead(nn.Module):
         cfg = self.config
         c, s = cfg.hidden_dim, cfg.memory_stride
         b, h, w, _ = feats.shape
-        f_proj = nn.Dense(c, dtype=self.dtype, name="input_proj")(feats)
+        f_proj = Dense(c, dtype=self.dtype, name="input_proj")(feats)
         f_proj = nn.LayerNorm(dtype=self.dtype, name="input_proj_norm")(f_proj)  # [B, H, W, C]
 
         # Cross-attention memory: F_proj itself (paper) or its s x s average (memory_stride).
@@ -238,9 +239,9 @@ class SimpleMaskHead(nn.Module):
             outs.append(t)
         q = jnp.stack(outs)  # [L, B, Q, C]
 
-        m = nn.relu(nn.Dense(c, dtype=self.dtype, name="mask_embed0")(q))
-        m = nn.relu(nn.Dense(c, dtype=self.dtype, name="mask_embed1")(m))
-        m = nn.Dense(c, dtype=self.dtype, name="mask_embed2")(m)  # [L, B, Q, C]
+        m = nn.relu(Dense(c, dtype=self.dtype, name="mask_embed0")(q))
+        m = nn.relu(Dense(c, dtype=self.dtype, name="mask_embed1")(m))
+        m = Dense(c, dtype=self.dtype, name="mask_embed2")(m)  # [L, B, Q, C]
         # As one batched [L*Q, C] @ [C, H*W] product per frame: 2-3x faster on CPU than the
         # plain "lbqc,bhwc->lbqhw" einsum, whose layouts XLA resolves with extra transposes.
         n_l, n_q = m.shape[0], m.shape[2]
@@ -248,10 +249,10 @@ class SimpleMaskHead(nn.Module):
         masks = jnp.einsum("bkc,bcn->bkn", m, f_proj.reshape(b, h * w, c).transpose(0, 2, 1))
         masks = masks.reshape(b, n_l, n_q, h, w).transpose(1, 0, 2, 3, 4)  # [L, B, Q, H, W]
         out = {
-            "logits": nn.Dense(self.num_classes + 1, dtype=self.dtype, name="class_head")(q),
-            "dims": nn.Dense(3, dtype=self.dtype, name="dims_head")(q),
-            "pos": nn.Dense(3, dtype=self.dtype, name="pos_head")(q),
-            "yaw": nn.Dense(1, dtype=self.dtype, name="yaw_head")(q),
+            "logits": Dense(self.num_classes + 1, dtype=self.dtype, name="class_head")(q),
+            "dims": Dense(3, dtype=self.dtype, name="dims_head")(q),
+            "pos": Dense(3, dtype=self.dtype, name="pos_head")(q),
+            "yaw": Dense(1, dtype=self.dtype, name="yaw_head")(q),
             "masks": masks,
         }
         return {k: v.astype(jnp.float32) for k, v in out.items()}

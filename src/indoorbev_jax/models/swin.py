@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from indoorbev_jax.config import BackboneConfig
+from indoorbev_jax.models.layers import Dense
 
 # Added to masked attention logits. Finite (not -inf) so that a window made only of
 # padding still gives a finite softmax; its outputs are never read.
@@ -126,7 +127,7 @@ class WindowAttention(nn.Module):
         b, nw, t, c = x.shape
         h = self.num_heads
         d = c // h
-        qkv = nn.Dense(3 * c, dtype=self.dtype, name="qkv")(x)
+        qkv = Dense(3 * c, dtype=self.dtype, name="qkv")(x)
         qkv = qkv.reshape(b, nw, t, 3, h, d)  # [B, nW, T, 3, h, d]
         q, k, v = qkv[..., 0, :, :], qkv[..., 1, :, :], qkv[..., 2, :, :]  # [B, nW, T, h, d]
         logits = jnp.einsum("bwqhd,bwkhd->bwhqk", q * d**-0.5, k)  # [B, nW, h, T, T]
@@ -146,7 +147,7 @@ class WindowAttention(nn.Module):
         weights = jax.nn.softmax(logits, axis=-1).astype(self.dtype)  # [B, nW, h, T, T]
         self.sow("intermediates", "attention_weights", weights)
         out = jnp.einsum("bwhqk,bwkhd->bwqhd", weights, v).reshape(b, nw, t, c)
-        return nn.Dense(c, dtype=self.dtype, name="proj")(out)
+        return Dense(c, dtype=self.dtype, name="proj")(out)
 
 
 class SwinBlock(nn.Module):
@@ -186,8 +187,8 @@ class SwinBlock(nn.Module):
             y = jnp.roll(y, (s, s), axis=(1, 2))
         x = x + y
         y = nn.LayerNorm(dtype=self.dtype, name="norm2")(x)
-        y = nn.Dense(int(c * self.mlp_ratio), dtype=self.dtype, name="fc1")(y)
-        y = nn.Dense(c, dtype=self.dtype, name="fc2")(nn.gelu(y))
+        y = Dense(int(c * self.mlp_ratio), dtype=self.dtype, name="fc1")(y)
+        y = Dense(c, dtype=self.dtype, name="fc2")(nn.gelu(y))
         return x + y
 
 
@@ -209,7 +210,7 @@ class PatchMerging(nn.Module):
         """[B, H, W, C] -> [B, H/s, W/s, features]."""
         x = space_to_depth(x, self.stride)  # [B, H/s, W/s, s*s*C]
         x = nn.LayerNorm(dtype=self.dtype, name="norm")(x)
-        return nn.Dense(self.features, use_bias=False, dtype=self.dtype, name="reduction")(x)
+        return Dense(self.features, use_bias=False, dtype=self.dtype, name="reduction")(x)
 
 
 class PatchEmbed(nn.Module):
@@ -228,7 +229,7 @@ class PatchEmbed(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         """[B, H, W, C] -> [B, H/s, W/s, features]."""
-        x = nn.Dense(self.features, dtype=self.dtype, name="proj")(space_to_depth(x, self.stride))
+        x = Dense(self.features, dtype=self.dtype, name="proj")(space_to_depth(x, self.stride))
         return nn.LayerNorm(dtype=self.dtype, name="norm")(x)
 
 

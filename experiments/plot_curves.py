@@ -1,0 +1,64 @@
+"""Learning curves of a run: ``python experiments/plot_curves.py RUN [RUN ...] --out P.png``.
+
+Reads each run's ``metrics.jsonl`` (``train`` lines: loss; ``eval`` lines: AP@0.25,
+AP@0.50, PQ, mIoU on the validation frames) and draws one panel per quantity, one line per
+run. Needs matplotlib (``pip install -e .[plots]``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+PANELS = (
+    ("train", "loss", "training loss"),
+    ("eval", "ap0.25", "val AP@0.25"),
+    ("eval", "ap0.5", "val AP@0.50"),
+    ("eval", "pq", "val PQ"),
+    ("eval", "miou", "val mIoU"),
+)
+
+
+def read_log(run: Path) -> dict[str, list[dict]]:
+    """{"train": [...], "eval": [...]} lines of ``run/metrics.jsonl``."""
+    path = run / "metrics.jsonl"
+    out: dict[str, list[dict]] = {"train": [], "eval": []}
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError as e:
+            raise SystemExit(f"{path}:{n}: not a JSON line ({e})") from None
+        out.setdefault(row.get("kind", "train"), []).append(row)
+    return out
+
+
+def main(argv=None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("runs", nargs="+", type=Path)
+    p.add_argument("--out", required=True)
+    args = p.parse_args(argv)
+    logs = {run.name: read_log(run) for run in args.runs}
+    fig, axes = plt.subplots(1, len(PANELS), figsize=(4 * len(PANELS), 3.2))
+    for ax, (kind, key, title) in zip(axes, PANELS, strict=True):
+        for name, log in logs.items():
+            rows = [r for r in log[kind] if r.get(key) is not None]
+            ax.plot([r["step"] for r in rows], [r[key] for r in rows], label=name,
+                    marker="o" if kind == "eval" else None, markersize=3)  # fmt: skip
+        ax.set_title(title)
+        ax.set_xlabel("step")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=100)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
