@@ -3,6 +3,7 @@
     indoorbev-sim export --out DIR --frames N --seed S [--rosbag PATH] [--preset tiny]
     indoorbev-sim show DIR --out PICS [--ids 000000 000001] [--preset tiny]
     indoorbev-sim check --frames 200 [--preset paper] [--noise-free]
+    indoorbev-sim ros2 publish [--preset small] [--rate 10] [--frames N] [--record BAG]
 
 Compiled generators are kept in a persistent XLA cache (``--cache``, default
 ``~/.cache/indoorbev_sim/xla``; ``--cache ''`` disables it), so a resumed export does not
@@ -68,6 +69,28 @@ def main(argv: list[str] | None = None) -> int:
     ck.add_argument("--noise-free", action="store_true", help="no range noise or dropout")
     ck.add_argument("--cache", default=default_cache, help="persistent XLA cache folder")
 
+    ros2 = sub.add_parser("ros2", help="live ROS 2 nodes (pip install -e .[ros])")
+    pb = ros2.add_subparsers(dest="ros2_command", required=True).add_parser(
+        "publish", help="publish simulated PointCloud2 frames and ground-truth markers"
+    )
+    pb.add_argument("--preset", default="small", help="config preset (paper, small, tiny)")
+    pb.add_argument("--rate", type=float, default=10.0, help="frames per second")
+    pb.add_argument("--frames", type=int, default=0, help="frames to publish (0: until Ctrl-C)")
+    pb.add_argument("--topic", default="/lidar/points", help="PointCloud2 topic")
+    pb.add_argument("--objects-topic", default="/lidar/objects", help="ground-truth MarkerArray")
+    pb.add_argument("--frame-id", default="lidar")
+    pb.add_argument("--seed", type=int, default=0)
+    pb.add_argument("--split", default="test", choices=("train", "val", "test"))
+    pb.add_argument("--record", default=None, help="record what is published into this bag")
+    pb.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"))
+    pb.add_argument("--wait-subscribers", type=int, default=0,
+                    help="wait for N subscribers on --topic before the first frame")  # fmt: skip
+    pb.add_argument("--wait-timeout", type=float, default=60.0)
+    pb.add_argument("--noise-free", action="store_true", help="no range noise or dropout")
+    pb.add_argument("--cache", default=default_cache, help="persistent XLA cache folder")
+    pb.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
+                    help="the rest goes to rclpy (remappings, log levels)")  # fmt: skip
+
     args = parser.parse_args(argv)
     try:
         cfg = _config(args)
@@ -83,6 +106,19 @@ def main(argv: list[str] | None = None) -> int:
 
             written = show(args.root, args.out, cfg, args.ids)
             print(f"wrote {len(written)} pictures to {args.out}")
+        elif args.command == "ros2":
+            from indoorbev_sim.ros2 import publish
+
+            from indoorbev_jax.ros2 import RosUnavailable
+
+            _use_cache(args.cache)
+            try:
+                publish(cfg, args.rate, args.frames, args.topic, args.objects_topic,
+                        args.frame_id, args.seed, args.split, args.record, args.storage,
+                        args.wait_subscribers, args.wait_timeout, args.ros_args)  # fmt: skip
+            except RosUnavailable as e:
+                print(f"indoorbev-sim: error: {e}", file=sys.stderr)
+                return 2
         else:
             from indoorbev_sim.labels import check
 

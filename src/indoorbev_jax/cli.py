@@ -1,6 +1,7 @@
 """The ``indoorbev`` command line.
 
 indoorbev dataset check ROOT [--split NAME] [--preset small]
+indoorbev ros2 detect --checkpoint MODEL [--topic /livox/lidar] [--record BAG]
 """
 
 from __future__ import annotations
@@ -108,7 +109,51 @@ def build_parser() -> argparse.ArgumentParser:
     pred.add_argument("--bag-out", default=None, help="also write a bag with the predictions")
     pred.add_argument("--no-pictures", action="store_true")
     pred.set_defaults(func=run_predict)
+
+    ros2 = commands.add_parser("ros2", help="live ROS 2 nodes (pip install -e .[ros])")
+    ros2_commands = ros2.add_subparsers(dest="ros2_command", required=True)
+    det = ros2_commands.add_parser(
+        "detect", help="inference node: PointCloud2 in; detections, markers, occupancy out"
+    )
+    det.add_argument("--checkpoint", required=True, help="run directory or exported model file")
+    det.add_argument("--topic", default="/livox/lidar", help="PointCloud2 input topic")
+    det.add_argument("--out-ns", default="/indoorbev", help="namespace of the output topics")
+    det.add_argument(
+        "--reliable", action="store_true", help="reliable input QoS (default best effort)"
+    )
+    det.add_argument(
+        "--record", default=None, help="record inputs and outputs into this bag folder"
+    )
+    det.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"))
+    det.add_argument("--log-every", type=float, default=5.0, help="seconds between summaries")
+    det.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0: never)")
+    det.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
+                     help="the rest goes to rclpy (remappings, log levels)")  # fmt: skip
+    det.set_defaults(func=run_ros2_detect)
     return parser
+
+
+def run_ros2_detect(args: argparse.Namespace) -> int:
+    from indoorbev_jax.ros2 import RosUnavailable
+
+    try:
+        from indoorbev_jax.ros2.detect import run_detect_node
+
+        run_detect_node(
+            args.checkpoint,
+            topic=args.topic,
+            out_ns=args.out_ns,
+            reliable=args.reliable,
+            record=args.record,
+            storage=args.storage,
+            log_every=args.log_every,
+            max_frames=args.max_frames,
+            ros_args=args.ros_args,
+        )
+    except (RosUnavailable, OSError, ValueError) as e:
+        print(f"indoorbev ros2 detect: error: {e}", file=sys.stderr)
+        return 2
+    return 0
 
 
 def run_predict(args: argparse.Namespace) -> int:

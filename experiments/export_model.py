@@ -1,0 +1,37 @@
+"""Export a run's checkpoint as one model file: ``python experiments/export_model.py RUN --out F``.
+
+The file (msgpack: config + parameters, written atomically) is what ``indoorbev predict``,
+``indoorbev ros2 detect`` and ``make demo`` load; ``models/indoorbev_small.msgpack`` is the
+shipped one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import jax
+
+from indoorbev_jax.predict import export_model, load_model
+from indoorbev_jax.train import load_params
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("run", help="run directory (config.json + checkpoints)")
+    p.add_argument("--out", required=True, help="model file to write (.msgpack)")
+    p.add_argument("--which", default="best", choices=("best", "latest"))
+    args = p.parse_args(argv)
+    config, params = load_params(args.run, args.which)
+    path = export_model(params, config, args.out)
+    count = sum(math.prod(x.shape) for x in jax.tree.leaves(params))
+    _, back = load_model(path)  # the file must read back to the same parameters
+    same = jax.tree.all(jax.tree.map(lambda a, b: bool((a == b).all()), params, back))
+    if not same:
+        raise SystemExit(f"{path}: parameters did not read back unchanged")
+    print(f"{args.run} ({args.which}, preset {config.name}, {count:,} parameters) -> {path} "
+          f"({path.stat().st_size / 2**20:.1f} MiB)")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

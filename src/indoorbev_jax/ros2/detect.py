@@ -1,0 +1,311 @@
+"""The inference node: ``indoorbev ros2 detect --checkpoint MODEL [--topic /livox/lidar]``.
+
+Subscribes to sensor_msgs/PointCloud2 (any field layout with x, y, z and optional
+intensity) and publishes per cloud, with the cloud's stamp and frame id, the detections,
+markers and occupancy grid of ``indoorbev_jax.ros2.messages`` under ``--out-ns``.
+
+Stale frames are dropped rather than queued: the subscription keeps one message, its
+callback only parks the newest cloud in a one-slot mailbox (replacing an unprocessed one,
+counted as dropped), and a worker thread runs the model on whatever is newest. So
+callbacks never queue and the published frame is always the freshest the node could see.
+
+``Detector`` is the ROS-free core (serialized cloud in, serialized messages out), which
+the tests drive directly; ``run_detect_node`` wraps it in rclpy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import statistics
+import threading
+import time
+from collections import deque
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from indoorbev_jax.data import kitti
+from indoorbev_jax.data.dataset import pad_points
+from indoorbev_jax.predict import Predictor, load_model, to_labels
+from indoorbev_jax.ros2 import messages as M
+from indoorbev_jax.rosbag import (
+    MARKER_ARRAY,
+    POINTCLOUD2,
+    BagError,
+    cloud_msg,
+    pointcloud2_to_points,
+)
+from indoorbev_jax.rosbag import typestore as default_typestore
+
+OUTPUTS = {  # output name -> message type
+    "detections": POINTCLOUD2,
+    "markers": MARKER_ARRAY,
+    "occupancy": M.OCCUPANCY_GRID,
+}
+
+
+@dataclasses.dataclass
+class Result:
+    """What the node publishes for one cloud.
+
+    Attributes:
+      stamp: the cloud's header stamp (ns), carried to every output.
+      frame: the cloud's frame id, carried to every output.
+      outputs: {output name: serialized message} for every name of ``OUTPUTS``.
+      labels: the predicted objects (empty for unusable input).
+      warning: why the cloud was (partly) unusable, or None.
+      infer_ms: model + panoptic inference time; 0 when the model did not run.
+    """
+
+    stamp: int
+    frame: str
+    outputs: dict[str, bytes]
+    labels: kitti.ObjectLabels
+    warning: str | None
+    infer_ms: float
+
+
+class Detector:
+    """Serialized PointCloud2 in, serialized detections / markers / occupancy out.
+
+    Bad input never raises: a cloud without x, y or z, with truncated data, or without a
+    single finite point inside the grid gives a warning and empty outputs (no object, no
+    marker, an all-unknown grid). Non-finite points (the no-return rows of organized
+    clouds) are dropped with a warning and the rest is processed.
+    """
+
+    def __init__(self, config, params, ts=None):
+        self.config = config
+        self.ts = ts if ts is not None else default_typestore()
+        self.names = config.data.class_names
+        self.predictor = Predictor(config, jax.tree.map(jnp.asarray, params))
+
+    def warmup(self) -> float:
+        """Runs one dummy cloud through every step (the model compiles, ``rosbags`` builds
+        its (de)serializers) so that the first real frame is not late; returns seconds."""
+        start = time.perf_counter()
+        cloud = cloud_msg(self.ts, np.zeros((1, 4), np.float32), 0, "warmup")
+        self.process(bytes(self.ts.serialize_cdr(cloud, POINTCLOUD2)))
+        return time.perf_counter() - start
+
+    def process(self, raw: bytes) -> Result:
+        try:
+            msg = self.ts.deserialize_cdr(bytes(raw), POINTCLOUD2)
+        except Exception as e:  # noqa: BLE001 - any decoding failure is bad input
+            return self._empty(0, "", f"cannot decode the PointCloud2 ({type(e).__name__}: {e})")
+        stamp, frame = M.stamp_ns(msg), msg.header.frame_id
+        source = f"cloud '{frame}' @ {stamp / 1e9:.3f}s"
+        try:
+            points = pointcloud2_to_points(msg, source)
+        except BagError as e:
+            return self._empty(stamp, frame, str(e))
+        _, valid, counts = pad_points(points, self.config.grid, self.config.data.max_points)
+        notes = []
+        if counts["nonfinite_points"]:
+            notes.append(f"{counts['nonfinite_points']} of {len(points)} points are not finite")
+        if counts["dropped_points"]:
+            notes.append(
+                f"{counts['dropped_points']} points beyond data.max_points="
+                f"{self.config.data.max_points} dropped"
+            )
+        if not valid.any():
+            why = "empty" if len(points) == 0 else "no finite point inside the grid"
+            return self._empty(stamp, frame, f"{source}: {why}; {len(points)} points")
+        start = time.perf_counter()
+        _, _, final, output, _ = self.predictor(points)
+        infer_ms = 1e3 * (time.perf_counter() - start)
+        labels, ids = to_labels(final, output)
+        warning = f"{source}: {'; '.join(notes)} (those points are skipped)" if notes else None
+        return Result(stamp, frame, self._serialize(labels, ids > 0, stamp, frame),
+                      labels, warning, infer_ms)  # fmt: skip
+
+    def _empty(self, stamp: int, frame: str, warning: str) -> Result:
+        labels = kitti.ObjectLabels.empty(with_scores=True)
+        outputs = self._serialize(labels, None, stamp, frame)
+        return Result(stamp, frame, outputs, labels, warning, 0.0)
+
+    def _serialize(self, labels, occupied, stamp: int, frame: str) -> dict[str, bytes]:
+        ts = self.ts
+        msgs = {
+            "detections": M.detections_msg(ts, labels, stamp, frame),
+            "markers": M.footprint_markers_msg(ts, labels, self.names, stamp, frame),
+            "occupancy": M.occupancy_msg(ts, occupied, self.config.grid, stamp, frame),
+        }
+        return {k: bytes(ts.serialize_cdr(m, OUTPUTS[k])) for k, m in msgs.items()}
+
+
+def _percentiles(values) -> dict[str, float] | None:
+    if not values:
+        return None
+    v = np.asarray(values)
+    return {
+        "mean": round(float(v.mean()), 2),
+        "median": round(float(statistics.median(v)), 2),
+        "p90": round(float(np.percentile(v, 90)), 2),
+        "max": round(float(v.max()), 2),
+    }
+
+
+class _Stats:
+    """Frame counts, and latencies (ms) of the last ``window`` frames; shared by the
+    callback and the worker."""
+
+    def __init__(self, window: int = 10_000):
+        self.received = self.processed = self.dropped = self.bad = 0
+        self.transport, self.infer, self.total = (deque(maxlen=window) for _ in range(3))
+
+    def summary(self) -> dict:
+        return {
+            "received": self.received,
+            "processed": self.processed,
+            "dropped_stale": self.dropped,
+            "bad_input": self.bad,
+            # stamp -> callback: sensor driver + transport + deserialization by rclpy
+            "transport_ms": _percentiles(self.transport),
+            "inference_ms": _percentiles(self.infer),
+            # stamp -> detections published (markers and grid follow)
+            "latency_ms": _percentiles(self.total),
+        }
+
+
+def run_detect_node(
+    checkpoint: str,
+    topic: str = "/livox/lidar",
+    out_ns: str = "/indoorbev",
+    reliable: bool = False,
+    record: str | None = None,
+    storage: str = "sqlite3",
+    log_every: float = 5.0,
+    max_frames: int = 0,
+    ros_args: list[str] | None = None,
+) -> dict:
+    """Runs the detect node until Ctrl-C / SIGTERM (or ``max_frames`` processed frames).
+
+    Args:
+      checkpoint: run directory or exported model file.
+      topic: the PointCloud2 input topic.
+      out_ns: namespace of the outputs ``<out_ns>/detections|markers|occupancy``.
+      reliable: subscribe with reliable QoS (default best effort, which matches both best
+        effort and reliable publishers).
+      record: optional rosbag2 folder receiving the input clouds and every output.
+      storage: bag storage, "sqlite3" or "mcap".
+      log_every: seconds between summary log lines.
+      max_frames: stop after this many processed frames (0: run until stopped).
+      ros_args: arguments after ``--ros-args`` (remappings, log levels), passed to rclpy.
+
+    Returns:
+      the statistics of ``_Stats.summary`` (counts and latency percentiles).
+    """
+    from indoorbev_jax.ros2 import runtime
+
+    runtime.require_rclpy()
+    if record:  # before the slow warm-up
+        from indoorbev_jax.ros2.record import ensure_new
+
+        ensure_new(record)
+    config, params = load_model(checkpoint)
+    detector = Detector(config, params)
+    compile_s = detector.warmup()
+    context, node = runtime.start_node("indoorbev_detect", ros_args)
+    log = node.get_logger()
+    out_topics = {k: f"{out_ns.rstrip('/')}/{k}" for k in OUTPUTS}
+    publishers = {
+        k: node.create_publisher(runtime.msg_class(OUTPUTS[k]), t, runtime.qos(True, 5))
+        for k, t in out_topics.items()
+    }
+    recorder = None
+    if record:
+        from indoorbev_jax.ros2.record import BagRecorder
+
+        bag_topics = {topic: POINTCLOUD2} | {out_topics[k]: OUTPUTS[k] for k in OUTPUTS}
+        recorder = BagRecorder(record, bag_topics, detector.ts, storage)
+
+    stats, lock, wake, stop = _Stats(), threading.Lock(), threading.Event(), threading.Event()
+    mailbox: list = []  # at most one (raw cloud, receive time ns)
+
+    def on_cloud(raw: bytes) -> None:
+        now = time.time_ns()
+        with lock:
+            stats.received += 1
+            if mailbox:
+                stats.dropped += 1
+                mailbox.clear()
+            mailbox.append((raw, now))
+        wake.set()
+
+    failure: list[BaseException] = []
+
+    def work() -> None:
+        try:
+            process_forever()
+        except BaseException as e:  # noqa: BLE001 - re-raised by the main thread
+            failure.append(e)
+            stop.set()
+
+    def process_forever() -> None:
+        last_log = time.monotonic()
+        while not stop.is_set():
+            if not wake.wait(0.1):
+                continue
+            with lock:
+                wake.clear()
+                if not mailbox:
+                    continue
+                raw, received = mailbox.pop()
+            result = detector.process(raw)
+            publishers["detections"].publish(result.outputs["detections"])
+            published = time.time_ns()
+            publishers["markers"].publish(result.outputs["markers"])
+            publishers["occupancy"].publish(result.outputs["occupancy"])
+            if recorder is not None:
+                recorder.write(topic, result.stamp, bytes(raw))
+                for k in OUTPUTS:
+                    recorder.write(out_topics[k], result.stamp, result.outputs[k])
+            with lock:
+                stats.processed += 1
+                if result.warning is not None:
+                    # At most one a second: a sensor that sends bad clouds sends them at rate.
+                    log.warning(result.warning, throttle_duration_sec=1.0)
+                if result.infer_ms:
+                    stats.infer.append(result.infer_ms)
+                else:
+                    stats.bad += 1
+                if result.stamp:
+                    stats.transport.append((received - result.stamp) / 1e6)
+                    stats.total.append((published - result.stamp) / 1e6)
+                done = max_frames and stats.processed >= max_frames
+            log.debug(f"{result.frame} @ {result.stamp}: {len(result.labels)} objects, "
+                      f"{result.infer_ms:.1f} ms inference")  # fmt: skip
+            if time.monotonic() - last_log > log_every:
+                last_log = time.monotonic()
+                with lock:
+                    log.info(json.dumps(stats.summary()))
+            if done:
+                stop.set()
+
+    node.create_subscription(
+        runtime.msg_class(POINTCLOUD2), topic, on_cloud, runtime.qos(reliable, 1), raw=True
+    )
+    worker = threading.Thread(target=work, name="indoorbev-detect", daemon=True)
+    worker.start()
+    print(
+        f"indoorbev ros2 detect: ready (warm-up {compile_s:.1f} s); "
+        f"{topic} -> {', '.join(out_topics.values())}",
+        flush=True,
+    )
+    try:
+        runtime.spin(node, context, stop)
+    finally:
+        stop.set()
+        worker.join()
+        if recorder is not None:
+            path = recorder.close()
+            print(f"indoorbev ros2 detect: recorded {recorder.counts} into {path}", flush=True)
+        runtime.stop_node(node, context)
+    if failure:
+        raise RuntimeError("the inference worker failed") from failure[0]
+    summary = stats.summary()
+    print("indoorbev ros2 detect: summary " + json.dumps(summary), flush=True)
+    return summary

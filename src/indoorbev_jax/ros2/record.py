@@ -1,0 +1,110 @@
+"""Recording what a node publishes into a rosbag2 folder, through ``rosbags`` (no ROS)."""
+
+from __future__ import annotations
+
+import os
+import queue
+import shutil
+import threading
+from pathlib import Path
+
+STORAGES = ("sqlite3", "mcap")
+
+
+def ensure_new(path: str | os.PathLike) -> Path:
+    """``path`` as a Path; a ``FileExistsError`` when something is there already."""
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(f"{path}: already exists; record into a new folder")
+    return path
+
+
+class BagRecorder:
+    """Writes serialized messages (the bytes a node publishes) into a rosbag2 folder.
+
+    A thread of its own does all the writing (sqlite objects must stay in the thread that
+    made them, and disk writes stay off the inference loop); ``write`` only queues. The
+    bag is written under ``<path>.partial/`` and moved to ``path`` by ``close``, so a
+    folder under the final name is always a complete bag.
+
+    Args:
+      path: the bag folder to create (it must not exist).
+      topics: {topic: message type name}, e.g. ``{"/points": "sensor_msgs/msg/PointCloud2"}``.
+      ts: the ``rosbags`` typestore the messages were serialized with.
+      storage: "sqlite3" or "mcap".
+    """
+
+    def __init__(self, path: str | os.PathLike, topics: dict[str, str], ts, storage="sqlite3"):
+        if storage not in STORAGES:
+            raise ValueError(f"storage: expected one of {STORAGES}, got '{storage}'")
+        self.path = ensure_new(path)
+        self._partial = self.path.with_name(self.path.name + ".partial")
+        shutil.rmtree(self._partial, ignore_errors=True)
+        self._partial.mkdir(parents=True)
+        self.counts = dict.fromkeys(topics, 0)
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._error: BaseException | None = None
+        self._opened = threading.Event()
+        self._closed = False
+        self._thread = threading.Thread(
+            target=self._run, args=(topics, ts, storage), name="bag-recorder", daemon=True
+        )
+        self._thread.start()
+        self._opened.wait()
+        self._raise()
+
+    def _run(self, topics, ts, storage) -> None:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        try:
+            plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+            # rosbags names the storage file after the bag folder: <path>.partial/<name>.
+            writer = Writer(self._partial / self.path.name, version=8, storage_plugin=plugin)
+            writer.open()
+            conns = {t: writer.add_connection(t, m, typestore=ts) for t, m in topics.items()}
+        except BaseException as e:  # noqa: BLE001 - reported by the constructor
+            self._error = e
+            self._opened.set()
+            return
+        self._opened.set()
+        try:
+            while (item := self._queue.get()) is not None:
+                topic, stamp, raw = item
+                writer.write(conns[topic], stamp, raw)
+                self.counts[topic] += 1
+        except BaseException as e:  # noqa: BLE001 - reported by close
+            self._error = e
+        finally:
+            writer.close()
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            raise RuntimeError(f"{self.path}: recording failed: {self._error}") from self._error
+
+    def write(self, topic: str, stamp: int, raw: bytes) -> None:
+        """Queues one serialized message, logged at ``stamp`` (ns)."""
+        if topic not in self.counts:
+            raise KeyError(f"{topic}: not one of the recorded topics {sorted(self.counts)}")
+        self._queue.put((topic, stamp, bytes(raw)))
+
+    def close(self) -> Path:
+        """Writes what is queued, finishes the bag and moves it under its final name."""
+        if not self._closed:
+            self._closed = True
+            self._queue.put(None)
+            self._thread.join()
+            self._raise()
+            os.replace(self._partial / self.path.name, self.path)
+            self._partial.rmdir()
+        return self.path
+
+
+def read_bag(bag: str | os.PathLike) -> dict[str, list[tuple[int, bytes]]]:
+    """{topic: [(stamp ns, serialized message)]} of a bag, in time order per topic."""
+    from rosbags.rosbag2 import Reader
+
+    out: dict[str, list[tuple[int, bytes]]] = {}
+    with Reader(bag) as reader:
+        for conn, stamp, raw in reader.messages():
+            out.setdefault(conn.topic, []).append((stamp, bytes(raw)))
+    return out

@@ -1,0 +1,63 @@
+"""The little rclpy glue both nodes share; the only module that imports rclpy."""
+
+from __future__ import annotations
+
+import importlib
+import signal
+import threading
+
+from indoorbev_jax.ros2 import require_rclpy
+
+__all__ = ["msg_class", "qos", "require_rclpy", "spin", "start_node", "stop_node"]
+
+
+def msg_class(msgtype: str):
+    """The rclpy message class of a type name such as "sensor_msgs/msg/PointCloud2"."""
+    package, kind, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{package}.{kind}"), name)
+
+
+def qos(reliable: bool, depth: int):
+    """Keep-last ``depth``, volatile; reliable or best effort."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    policy = ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT
+    return QoSProfile(depth=depth, reliability=policy)
+
+
+def start_node(name: str, ros_args: list[str] | None = None):
+    """(context, node) in a fresh rclpy context; ``ros_args`` are what followed
+    ``--ros-args`` on the command line (remappings, ``-p`` parameters, log levels)."""
+    rclpy = require_rclpy()
+    if threading.current_thread() is threading.main_thread():
+        # rclpy handles SIGINT; make SIGTERM (what process managers send) stop as cleanly.
+        signal.signal(signal.SIGTERM, _interrupt)
+    context = rclpy.Context()
+    args = ["indoorbev", "--ros-args", *ros_args] if ros_args else None
+    rclpy.init(args=args, context=context)
+    return context, rclpy.create_node(name, context=context)
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def spin(node, context, stop: threading.Event | None = None) -> None:
+    """Runs the node's callbacks until Ctrl-C, SIGTERM or ``stop`` is set."""
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        while context.ok() and not (stop is not None and stop.is_set()):
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+
+
+def stop_node(node, context) -> None:
+    node.destroy_node()
+    if context.ok():
+        context.try_shutdown()

@@ -1,0 +1,44 @@
+"""Upsampler skips: a backbone whose first stride is 2 gets the encoder map at full size."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from indoorbev_jax.config import Config
+from indoorbev_jax.models.head import AdaptiveUpsampler
+
+
+def _param_names(skips: bool, first_stride: int) -> set[str]:
+    cfg = Config.tiny()
+    bb = dataclasses.replace(cfg.backbone, strides=(first_stride, 2, 2, 2))
+    res = 48 if first_stride == 2 else 24  # padded input side; last stage is 3 x 3
+    stages = {k: jnp.zeros((1, res // (first_stride * 2**k), res // (first_stride * 2**k), c))
+              for k, c in enumerate(bb.embed_dims)}  # fmt: skip
+    bev = jnp.zeros((1, res, res, cfg.encoder.channels))
+    steps = bb.total_stride.bit_length() - 1
+    up = AdaptiveUpsampler(steps, cfg.head.hidden_dim, skips)
+    params = jax.eval_shape(up.init, jax.random.key(0), stages, bev)["params"]
+    return set(params)
+
+
+def test_encoder_map_is_a_skip_only_when_no_stage_has_full_resolution():
+    assert "lateral_bev" in _param_names(skips=True, first_stride=2)
+    assert "lateral_bev" not in _param_names(skips=True, first_stride=1)
+    assert "lateral0" in _param_names(skips=True, first_stride=1)
+    assert not any(n.startswith("lateral") for n in _param_names(False, 2))
+
+
+def test_bev_skip_changes_the_output_cellwise():
+    # A bump in one encoder cell changes the upsampled map in that cell only (the lateral
+    # Dense is per cell), so 1-cell detail reaches the masks.
+    cfg = Config.tiny()
+    stages = {0: jnp.zeros((1, 12, 12, 16)), 1: jnp.zeros((1, 6, 6, 32))}
+    up = AdaptiveUpsampler(2, 8, skips=True)
+    bev = jnp.zeros((1, 24, 24, cfg.encoder.channels))
+    params = up.init(jax.random.key(0), stages, bev)
+    base = up.apply(params, stages, bev)
+    moved = up.apply(params, stages, bev.at[0, 5, 7].set(1.0))
+    changed = np.argwhere(np.abs(np.asarray(moved - base)).sum(-1)[0] > 0)
+    np.testing.assert_array_equal(changed, [[5, 7]])
