@@ -22,6 +22,8 @@ Needs ``torch==2.13.0`` in the venv for the peer (benchmark-only, not a dependen
         --batch 1 --reps 3 --peer convT2
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_model.py --preset paper --mode train \
         --batch 2 --reps 2 --only jax --set head.remat=1 --set backbone.remat=1
+    JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_model.py --preset paper --mode train \
+        --batch 1 --reps 2 --only jax --vs backbone.chunk_windows=81 --vs head.attention_chunk=3125
 """
 
 from __future__ import annotations
@@ -164,6 +166,13 @@ def main(argv=None):
     ap.add_argument("--bf16", action="store_true", help="bfloat16 computation (ours)")
     ap.add_argument("--peer", default="convT2", help="comma list of peer up_modes, or none")
     ap.add_argument("--only", default="both", choices=["both", "jax", "torch"])
+    ap.add_argument(
+        "--vs",
+        action="append",
+        default=[],
+        help="override a.b=v (on top of --set) for a second jax step timed interleaved with "
+        "the first, e.g. the memory-lean settings against the plain ones",
+    )
     a = ap.parse_args(argv)
 
     cfg = apply_overrides(Config.preset(a.preset), a.set)
@@ -178,6 +187,11 @@ def main(argv=None):
             f"compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB",
             flush=True,
         )
+        if a.vs:
+            run, compile_s, mem, _ = build_jax(apply_overrides(cfg, a.vs), a.mode, a.batch, dtype)
+            name = f"jax[{' '.join(a.vs)}]"
+            runners[name] = run
+            print(f"{label}: {name} compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB")
     peers = [] if a.only == "jax" or a.peer == "none" else a.peer.split(",")
     for up_mode in peers:
         if a.preset == "tiny":

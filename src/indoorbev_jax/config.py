@@ -153,10 +153,17 @@ class BackboneConfig:
     window_size: int = 7
     mlp_ratio: float = 2.0
     out_indices: tuple[int, ...] = (0, 1, 2, 3)
+    # Recompute every block, the patch embedding and the merges in the backward pass.
     remat: bool = False
+    # Memory-lean blocks: 0 off; n > 0 runs every block whose map has more than n windows as
+    # a scan over groups of n windows, each group recomputed in the backward pass, so the
+    # training peak holds one group's attention scores and MLP activations, not the map's.
+    chunk_windows: int = 0
 
     def __post_init__(self):
         n = len(self.embed_dims)
+        if self.chunk_windows < 0:
+            _fail("backbone.chunk_windows", f"must be >= 0 (0: off), got {self.chunk_windows}")
         for name in ("depths", "num_heads", "strides", "shifted"):
             _check_len(f"backbone.{name}", getattr(self, name), n)
         for k, (dim, heads) in enumerate(zip(self.embed_dims, self.num_heads, strict=True)):
@@ -199,13 +206,23 @@ class HeadConfig:
     # Cross-attention memory stride: 1 attends to the full H x W memory (paper); s > 1
     # attends to an s x s average-pooled memory while masks stay at full resolution.
     memory_stride: int = 1
-    # Recompute each decoder layer's cross-attention in the backward pass (jax.checkpoint):
-    # its scores over the H x W memory set the training memory peak.
+    # Add the 2D sine code to F_proj where the mask logits read it (paper: False), so a
+    # query can tell two look-alike objects apart by where they are.
+    mask_positional: bool = False
+    # Recompute each decoder layer's cross-attention, each upsampler step and the input
+    # projection in the backward pass (jax.checkpoint); pair with attention_chunk, without
+    # which the peak sits inside one cross-attention (docs/BENCHMARKS.md "## Model").
     remat: bool = False
+    # Memory-lean cross-attention: 0 off; n > 0 streams the memory in chunks of n tokens
+    # with an online softmax, each chunk recomputed in the backward pass, so the [B, h, Q, S]
+    # scores never exist whole (the last chunk is padded and masked).
+    attention_chunk: int = 0
 
     def __post_init__(self):
         for name in ("hidden_dim", "num_queries", "num_layers", "ffn_dim", "memory_stride"):
             _check_positive(f"head.{name}", getattr(self, name))
+        if self.attention_chunk < 0:
+            _fail("head.attention_chunk", f"must be >= 0 (0: off), got {self.attention_chunk}")
         if self.num_heads <= 0 or self.hidden_dim % self.num_heads:
             _fail(
                 "head.num_heads",

@@ -42,19 +42,25 @@ class AdaptiveUpsampler(nn.Module):
       min_channels: channel floor (C_hid).
       skips: add lateral connections from earlier stages.
       dtype: computation dtype.
+      remat: recompute each step in the backward pass (``jax.checkpoint``), keeping only
+        its input.
     """
 
     steps: int
     min_channels: int
     skips: bool = False
     dtype: jnp.dtype = jnp.float32
+    remat: bool = False
 
     @nn.compact
-    def __call__(self, stages: dict[int, jax.Array]) -> jax.Array:
+    def __call__(self, stages: dict[int, jax.Array], bev: jax.Array | None = None) -> jax.Array:
         """Upsample.
 
         Args:
           stages: stage index -> [B, R_k, R_k, C_k] from ``SwinBackbone``.
+          bev: the encoder map padded to [B, R, R, C_enc]; with ``skips`` it is added
+            through a lateral Dense at the last step when no stage has the full resolution
+            (backbones whose first stride is 2), so masks see the 1-cell detail.
 
         Returns:
           [B, R, R, C'] at the padded input resolution R.
@@ -64,11 +70,19 @@ class AdaptiveUpsampler(nn.Module):
         by_res = {v.shape[1]: (k, v) for k, v in stages.items() if k != last}
         for i in range(self.steps):
             c = max(x.shape[-1] // 2, self.min_channels)
-            x = Dense(4 * c, dtype=self.dtype, name=f"up{i}")(x)
-            x = nn.gelu(depth_to_space(x, 2))  # [B, 2R, 2R, C']
+
+            def step(mdl: AdaptiveUpsampler, x: jax.Array, i=i, c=c) -> jax.Array:
+                x = Dense(4 * c, dtype=mdl.dtype, name=f"up{i}")(x)
+                return nn.gelu(depth_to_space(x, 2))  # [B, 2R, 2R, C']
+
+            # The function form of remat keeps the parameter names (up{i}).
+            x = (nn.remat(step) if self.remat else step)(self, x)
             if self.skips and x.shape[1] in by_res:
                 k, skip = by_res[x.shape[1]]
                 x = x + Dense(c, dtype=self.dtype, name=f"lateral{k}")(skip)
+        full_res = x.shape[1]
+        if self.skips and bev is not None and bev.shape[1] == full_res and full_res not in by_res:
+            x = x + Dense(x.shape[-1], dtype=self.dtype, name="lateral_bev")(bev)
         return x
 
 
@@ -137,11 +151,45 @@ class Attention(nn.Module):
     dtype: jnp.dtype = jnp.float32
 
     @nn.compact
-    def __call__(self, q_in: jax.Array, k_in: jax.Array, v_in: jax.Array) -> jax.Array:
-        """q_in [B, Tq, C], k_in and v_in [B, Tk, C] -> [B, Tq, C]."""
+    def __call__(
+        self,
+        q_in: jax.Array,
+        k_in: jax.Array,
+        v_in: jax.Array,
+        key_ok: np.ndarray | jax.Array | None = None,
+    ) -> jax.Array:
+        """Attend.
+
+        Args:
+          q_in: [B, Tq, C] queries.
+          k_in, v_in: [B, Tk, C] keys and values; or, with ``key_ok``, the same split into
+            chunks, [N, B, Tc, C] from ``chunk_memory``.
+          key_ok: None, or bool [N, Tc]: which chunk slots hold a real token; the chunks are
+            then streamed through an online softmax (``_attend_chunk``).
+
+        Returns:
+          [B, Tq, C].
+        """
         b, tq, c = q_in.shape
         h, d = self.num_heads, c // self.num_heads
         q = Dense(c, dtype=self.dtype, name="q")(q_in * d**-0.5)
+        if key_ok is not None:
+            q = q.reshape(b, tq, h, d).transpose(0, 2, 1, 3)  # [B, h, Tq, d]
+            scan = nn.scan(
+                nn.remat(_attend_chunk, prevent_cse=False),  # CSE is safe inside a scan
+                variable_broadcast="params",
+                split_rngs={"params": False},
+                in_axes=(0, 0, 0, nn.broadcast),
+            )
+            init = (
+                jnp.full((b, h, tq), -jnp.inf, jnp.float32),  # running max of the logits
+                jnp.zeros((b, h, tq), jnp.float32),  # running softmax denominator
+                jnp.zeros((b, h, tq, d), jnp.float32),  # running weighted sum of values
+            )
+            (_, den, acc), _ = scan(self, init, k_in, v_in, key_ok, q)
+            out = (acc / den[..., None]).astype(self.dtype)  # [B, h, Tq, d]
+            out = out.transpose(0, 2, 1, 3).reshape(b, tq, c)
+            return Dense(c, dtype=self.dtype, name="out")(out)
         k = Dense(c, dtype=self.dtype, name="k")(k_in)
         v = Dense(c, dtype=self.dtype, name="v")(v_in)
         # Heads-major layouts with keys as [B, h, d, Tk]: with few queries, long memories
@@ -154,6 +202,58 @@ class Attention(nn.Module):
         weights = jax.nn.softmax(logits, axis=-1).astype(self.dtype)
         out = jnp.einsum("bhqk,bhkd->bqhd", weights, v).reshape(b, tq, c)
         return Dense(c, dtype=self.dtype, name="out")(out)
+
+
+def _attend_chunk(attn: Attention, carry, k_in, v_in, key_ok, q):
+    """Scan body of the streamed ``Attention``: one memory chunk of an online softmax
+    (flash-attention style), with the module's own ``k`` / ``v`` projections.
+
+    Args:
+      attn: the bound ``Attention``.
+      carry: ``(m, den, acc)``: running max [B, h, Tq], softmax denominator [B, h, Tq] and
+        unnormalised output [B, h, Tq, d], all float32.
+      k_in, v_in: [B, Tc, C] this chunk's keys and values.
+      key_ok: bool [Tc], False on padding slots.
+      q: [B, h, Tq, d] scaled, projected queries.
+
+    Returns:
+      ``(carry, None)`` with the carry updated by this chunk.
+    """
+    m, den, acc = carry
+    b, tc, c = k_in.shape
+    h, d = attn.num_heads, c // attn.num_heads
+    k = Dense(c, dtype=attn.dtype, name="k")(k_in)
+    v = Dense(c, dtype=attn.dtype, name="v")(v_in)
+    k = k.reshape(b, tc, h, d).transpose(0, 2, 3, 1)  # [B, h, d, Tc]
+    v = v.reshape(b, tc, h, d).transpose(0, 2, 1, 3)  # [B, h, Tc, d]
+    logits = jnp.einsum("bhqd,bhdk->bhqk", q, k).astype(jnp.float32)  # [B, h, Tq, Tc]
+    logits = jnp.where(key_ok, logits, -jnp.inf)
+    # The result does not depend on the stabilising max, so no gradient flows through it.
+    # Every chunk holds a real token (padding < chunk), so m_new is finite after chunk 1.
+    m_new = jax.lax.stop_gradient(jnp.maximum(m, logits.max(-1)))  # [B, h, Tq]
+    p = jnp.exp(logits - m_new[..., None])  # [B, h, Tq, Tc]
+    scale = jnp.exp(m - m_new)  # [B, h, Tq], 0 on the first chunk
+    den = den * scale + p.sum(-1)
+    pv = jnp.einsum("bhqk,bhkd->bhqd", p.astype(attn.dtype), v).astype(jnp.float32)
+    return (m_new, den, acc * scale[..., None] + pv), None
+
+
+def chunk_memory(mem: jax.Array, chunk: int) -> tuple[jax.Array, np.ndarray]:
+    """Split a memory into equal chunks for the streamed ``Attention``.
+
+    Args:
+      mem: [B, S, C].
+      chunk: tokens per chunk Tc; S is zero-padded up to a multiple of it.
+
+    Returns:
+      ``(chunks, key_ok)``: [N, B, Tc, C] with N = ceil(S / Tc), and bool [N, Tc], False on
+      the padding slots (all in the last chunk, which keeps at least one real token).
+    """
+    b, n_tok, c = mem.shape
+    n = -(-n_tok // chunk)
+    mem = jnp.pad(mem, ((0, 0), (0, n * chunk - n_tok), (0, 0)))
+    chunks = mem.reshape(b, n, chunk, c).transpose(1, 0, 2, 3)  # [N, B, Tc, C]
+    return chunks, (np.arange(n * chunk) < n_tok).reshape(n, chunk)
 
 
 class DecoderLayer(nn.Module):
@@ -169,8 +269,24 @@ class DecoderLayer(nn.Module):
     dtype: jnp.dtype = jnp.float32
 
     @nn.compact
-    def __call__(self, t: jax.Array, mem: jax.Array, mem_pos: jax.Array) -> jax.Array:
-        """t [B, Q, C] queries; mem, mem_pos [B, S, C] memory and memory + code -> [B, Q, C]."""
+    def __call__(
+        self,
+        t: jax.Array,
+        mem: jax.Array,
+        mem_pos: jax.Array,
+        key_ok: np.ndarray | None = None,
+    ) -> jax.Array:
+        """Refine the queries.
+
+        Args:
+          t: [B, Q, C] queries.
+          mem, mem_pos: [B, S, C] memory and memory + code; or, with ``key_ok``, both as
+            [N, B, Tc, C] chunks from ``chunk_memory`` (streamed cross-attention).
+          key_ok: None, or bool [N, Tc] from ``chunk_memory``.
+
+        Returns:
+          [B, Q, C].
+        """
         cfg = self.config
         # Remat the cross-attention: its scores over S memory tokens ([B, h, Q, S]) and the
         # key / value projections ([B, S, C]) dominate the training peak; recomputing them in
@@ -180,7 +296,7 @@ class DecoderLayer(nn.Module):
             t + Attention(cfg.num_heads, self.dtype, name="self_attn")(t, t, t)
         )
         t = nn.LayerNorm(dtype=self.dtype, name="norm2")(
-            t + cross_cls(cfg.num_heads, self.dtype, name="cross_attn")(t, mem_pos, mem)
+            t + cross_cls(cfg.num_heads, self.dtype, name="cross_attn")(t, mem_pos, mem, key_ok)
         )
         y = Dense(cfg.ffn_dim, dtype=self.dtype, name="ffn1")(t)
         y = Dense(t.shape[-1], dtype=self.dtype, name="ffn2")(nn.relu(y))
@@ -214,8 +330,13 @@ class SimpleMaskHead(nn.Module):
         cfg = self.config
         c, s = cfg.hidden_dim, cfg.memory_stride
         b, h, w, _ = feats.shape
-        f_proj = Dense(c, dtype=self.dtype, name="input_proj")(feats)
-        f_proj = nn.LayerNorm(dtype=self.dtype, name="input_proj_norm")(f_proj)  # [B, H, W, C]
+
+        def project(mdl: SimpleMaskHead, feats: jax.Array) -> jax.Array:
+            f = Dense(c, dtype=mdl.dtype, name="input_proj")(feats)
+            return nn.LayerNorm(dtype=mdl.dtype, name="input_proj_norm")(f)  # [B, H, W, C]
+
+        # With remat, the full-resolution LayerNorm's residuals are recomputed, not kept.
+        f_proj = (nn.remat(project) if cfg.remat else project)(self, feats)
 
         # Cross-attention memory: F_proj itself (paper) or its s x s average (memory_stride).
         mem = pool_memory(f_proj, s)  # [B, H', W', C]
@@ -230,12 +351,17 @@ class SimpleMaskHead(nn.Module):
         )  # [H', W', C]
         mem_pos = (mem + code).reshape(b, hm * wm, c)  # [B, S, C]
         mem = mem.reshape(b, hm * wm, c)  # [B, S, C]
+        key_ok = None
+        if 0 < cfg.attention_chunk < hm * wm:
+            # Chunked once here, shared by every decoder layer.
+            mem, key_ok = chunk_memory(mem, cfg.attention_chunk)  # [N, B, Tc, C], [N, Tc]
+            mem_pos, _ = chunk_memory(mem_pos, cfg.attention_chunk)
 
         query = self.param("query_embed", nn.initializers.normal(1.0), (cfg.num_queries, c))
         t = jnp.broadcast_to(query.astype(self.dtype), (b, cfg.num_queries, c))
         outs = []
         for i in range(cfg.num_layers):
-            t = DecoderLayer(cfg, self.dtype, name=f"decoder{i}")(t, mem, mem_pos)
+            t = DecoderLayer(cfg, self.dtype, name=f"decoder{i}")(t, mem, mem_pos, key_ok)
             outs.append(t)
         q = jnp.stack(outs)  # [L, B, Q, C]
 
@@ -246,7 +372,17 @@ class SimpleMaskHead(nn.Module):
         # plain "lbqc,bhwc->lbqhw" einsum, whose layouts XLA resolves with extra transposes.
         n_l, n_q = m.shape[0], m.shape[2]
         m = m.transpose(1, 0, 2, 3).reshape(b, n_l * n_q, c)  # [B, L*Q, C]
-        masks = jnp.einsum("bkc,bcn->bkn", m, f_proj.reshape(b, h * w, c).transpose(0, 2, 1))
+        pixels = f_proj
+        if cfg.mask_positional:
+            py, px = positional_code(h, w, c)
+            pixels = pixels + jnp.concatenate(
+                [
+                    jnp.broadcast_to(jnp.asarray(py, self.dtype)[:, None, :], (h, w, c // 2)),
+                    jnp.broadcast_to(jnp.asarray(px, self.dtype)[None, :, :], (h, w, c // 2)),
+                ],
+                axis=-1,
+            )
+        masks = jnp.einsum("bkc,bcn->bkn", m, pixels.reshape(b, h * w, c).transpose(0, 2, 1))
         masks = masks.reshape(b, n_l, n_q, h, w).transpose(1, 0, 2, 3, 4)  # [L, B, Q, H, W]
         out = {
             "logits": Dense(self.num_classes + 1, dtype=self.dtype, name="class_head")(q),

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from indoorbev_jax.config import Config
 from indoorbev_jax.models.encoder import AFPCCN
 from indoorbev_jax.models.head import AdaptiveUpsampler, SimpleMaskHead
-from indoorbev_jax.models.swin import SwinBackbone
+from indoorbev_jax.models.swin import SwinBackbone, padded_side
 from indoorbev_jax.types import Predictions
 
 
@@ -55,9 +55,11 @@ class IndoorBEV(nn.Module):
         bev = AFPCCN(cfg.grid, cfg.encoder.channels, name="encoder")(points, valid)
         stages = SwinBackbone(cfg.backbone, dtype, name="backbone")(bev)
         steps = cfg.backbone.total_stride.bit_length() - 1  # strides are 1 or 2
+        side = padded_side(h, cfg.backbone)
         up = AdaptiveUpsampler(
-            steps, cfg.head.hidden_dim, cfg.head.upsampler_skips, dtype, name="upsampler"
-        )(stages)
+            steps, cfg.head.hidden_dim, cfg.head.upsampler_skips, dtype, cfg.head.remat,
+            name="upsampler",
+        )(stages, jnp.pad(bev, ((0, 0), (0, side - h), (0, side - w), (0, 0))))  # fmt: skip
         up = up[:, :h, :w]  # [B, H, W, C'] crop the padding
         out = SimpleMaskHead(cfg.head, cfg.num_classes, dtype, name="head")(up)
         return Predictions(**out)

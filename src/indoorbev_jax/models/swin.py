@@ -159,6 +159,8 @@ class SwinBlock(nn.Module):
       valid: cells [0, valid) per side of this stage's map hold data.
       mlp_ratio: hidden width of the MLP relative to ``dim``.
       dtype: computation dtype.
+      chunk_windows: 0, or run the block over groups of this many windows, each group under
+        ``jax.checkpoint`` (see ``_chunked``); used when the map has more windows than that.
     """
 
     dim: int
@@ -168,12 +170,15 @@ class SwinBlock(nn.Module):
     valid: int
     mlp_ratio: float = 2.0
     dtype: jnp.dtype = jnp.float32
+    chunk_windows: int = 0
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         """[B, R, R, C] -> [B, R, R, C] on the padded map of side R."""
         b, res, _, c = x.shape
         ws, s = self.window_size, self.shift
+        if 0 < self.chunk_windows < (res // ws) ** 2:
+            return self._chunked(x)
         y = nn.LayerNorm(dtype=self.dtype, name="norm1")(x)
         if s:
             y = jnp.roll(y, (-s, -s), axis=(1, 2))
@@ -190,6 +195,66 @@ class SwinBlock(nn.Module):
         y = Dense(int(c * self.mlp_ratio), dtype=self.dtype, name="fc1")(y)
         y = Dense(c, dtype=self.dtype, name="fc2")(nn.gelu(y))
         return x + y
+
+    def _chunked(self, x: jax.Array) -> jax.Array:
+        """The same block, memory-lean: in the rolled frame every op is window-local
+        (attention) or per token (LayerNorm, MLP, residuals), so the block runs as a scan over
+        groups of ``chunk_windows`` windows with each group checkpointed. The backward pass
+        then holds one group's attention scores and MLP activations at a time instead of the
+        whole map's. Window counts that ``chunk_windows`` does not divide get padding windows
+        (no valid key), cut off again after the scan.
+        """
+        b, res, _, c = x.shape
+        ws, s, n = self.window_size, self.shift, self.chunk_windows
+        if s:
+            x = jnp.roll(x, (-s, -s), axis=(1, 2))
+        x = window_partition(x, ws)  # [B, nW, T, C]
+        nw, t = x.shape[1], x.shape[2]
+        nc = -(-nw // n)
+        pad = nc * n - nw
+        x = jnp.pad(x, ((0, 0), (0, pad), (0, 0), (0, 0)))
+        x = x.reshape(b, nc, n, t, c).transpose(1, 0, 2, 3, 4)  # [nC, B, n, T, C]
+        region = key_ok = None
+        if s > 0 or self.valid < res:
+            region, key_ok = window_masks(res, self.valid, ws, s)
+            region = np.pad(region, ((0, pad), (0, 0))).reshape(nc, n, t)  # [nC, n, T]
+            key_ok = np.pad(key_ok, ((0, pad), (0, 0))).reshape(nc, n, t)  # [nC, n, T]
+        scan = nn.scan(
+            nn.remat(_window_group, prevent_cse=False),  # CSE is safe inside a scan
+            variable_broadcast="params",
+            split_rngs={"params": False},
+            variable_axes={"intermediates": 0},
+        )
+        _, y = scan(self, None, (x, region, key_ok))  # [nC, B, n, T, C]
+        y = y.transpose(1, 0, 2, 3, 4).reshape(b, nc * n, t, c)[:, :nw]  # [B, nW, T, C]
+        y = window_reverse(y, ws, res, res)  # [B, R, R, C]
+        return jnp.roll(y, (s, s), axis=(1, 2)) if s else y
+
+
+def _window_group(block: SwinBlock, carry: None, xs) -> tuple[None, jax.Array]:
+    """Scan body of ``SwinBlock._chunked``: the block on one group of windows, with the
+    block's own submodule names so the parameter tree is the unchunked one.
+
+    Args:
+      block: the bound ``SwinBlock``.
+      carry: unused.
+      xs: ``(x, region, key_ok)``: x [B, n, T, C] rolled-frame windows; region and key_ok
+        [n, T] (``window_masks`` rows of these windows) or None.
+
+    Returns:
+      ``(None, [B, n, T, C])``.
+    """
+    x, region, key_ok = xs
+    c = x.shape[-1]
+    y = nn.LayerNorm(dtype=block.dtype, name="norm1")(x)
+    y = WindowAttention(c, block.num_heads, block.window_size, block.dtype, name="attn")(
+        y, region, key_ok
+    )
+    x = x + y
+    y = nn.LayerNorm(dtype=block.dtype, name="norm2")(x)
+    y = Dense(int(c * block.mlp_ratio), dtype=block.dtype, name="fc1")(y)
+    y = Dense(c, dtype=block.dtype, name="fc2")(nn.gelu(y))
+    return carry, x + y
 
 
 class PatchMerging(nn.Module):
@@ -260,7 +325,8 @@ class SwinBackbone(nn.Module):
     """Four-stage Swin over the BEV map.
 
     Attributes:
-      config: backbone fields (dims, depths, heads, strides, shift pattern, window, remat).
+      config: backbone fields (dims, depths, heads, strides, shift pattern, window, remat,
+        chunk_windows).
       dtype: computation dtype.
     """
 
@@ -286,19 +352,23 @@ class SwinBackbone(nn.Module):
         pad = padded_side(h, cfg) - h
         x = jnp.pad(x.astype(self.dtype), ((0, 0), (0, pad), (0, pad), (0, 0)))
         block_cls = nn.remat(SwinBlock) if cfg.remat else SwinBlock
+        # The full-resolution LayerNorms of the embedding and the merges otherwise keep
+        # several map-sized residuals each for the backward pass.
+        embed_cls = nn.remat(PatchEmbed) if cfg.remat else PatchEmbed
+        merge_cls = nn.remat(PatchMerging) if cfg.remat else PatchMerging
         outs, last = {}, len(cfg.embed_dims) - 1
         for k, (res, valid, shift) in enumerate(stage_geometry(h, cfg)):
             dim, stride = cfg.embed_dims[k], cfg.strides[k]
             if k == 0:
-                x = PatchEmbed(dim, stride, self.dtype, name="patch_embed")(x)
+                x = embed_cls(dim, stride, self.dtype, name="patch_embed")(x)
             else:
-                x = PatchMerging(dim, stride, self.dtype, name=f"merge{k}")(x)
+                x = merge_cls(dim, stride, self.dtype, name=f"merge{k}")(x)
             for d in range(cfg.depths[k]):
                 # Blocks alternate W and SW as in Swin; ``shifted`` says which one comes first.
                 s = shift if (d % 2 == 0) == cfg.shifted[k] else 0
                 x = block_cls(
                     dim, cfg.num_heads[k], cfg.window_size, s, valid, cfg.mlp_ratio, self.dtype,
-                    name=f"stage{k}_block{d}",
+                    cfg.chunk_windows, name=f"stage{k}_block{d}",
                 )(x)  # fmt: skip
             # Zero the padding so patch merging and the upsampler only ever mix in zeros.
             if valid < res:
