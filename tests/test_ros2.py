@@ -148,16 +148,24 @@ def test_detector_bad_input(detector):
     assert "empty; 0 points" in result.warning
     _assert_empty(result)
     result = detector.process(_raw_cloud(np.full((50, 4), np.nan, np.float32)))
-    assert "no finite point inside the grid; 50 points" in result.warning
+    assert "50 of 50 points are not finite; cloud skipped" in result.warning
     _assert_empty(result)
     result = detector.process(b"\x00\x01\x00\x00garbage")
     assert result.warning.startswith("cannot decode the PointCloud2")
     _assert_empty(result, frame="")
-    # Some NaN rows (organized clouds mark missing returns so): those are skipped and the
-    # outputs equal those of the clean cloud.
+    # Some NaN rows: by default the cloud gets a warning and empty outputs; with
+    # skip_nonfinite (organized clouds mark missing returns so) those points are skipped and
+    # the outputs equal those of the clean cloud.
     clean = _scan()
     dirty = np.concatenate([clean[:100], np.full((3, 4), np.nan, np.float32), clean[100:]])
     result = detector.process(_raw_cloud(dirty))
+    assert "3 of 303 points are not finite; cloud skipped" in result.warning
+    _assert_empty(result)
+    detector.skip_nonfinite = True
+    try:
+        result = detector.process(_raw_cloud(dirty))
+    finally:
+        detector.skip_nonfinite = False
     assert "3 of 303 points are not finite (those points are skipped)" in result.warning
     assert result.outputs == detector.process(_raw_cloud(clean)).outputs
 

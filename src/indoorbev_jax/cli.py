@@ -126,6 +126,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     det.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"))
     det.add_argument("--log-every", type=float, default=5.0, help="seconds between summaries")
+    det.add_argument(
+        "--skip-nonfinite",
+        action="store_true",
+        help="process the finite points of clouds with NaN/Inf points (default: empty output)",
+    )
     det.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0: never)")
     det.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
                      help="the rest goes to rclpy (remappings, log levels)")  # fmt: skip
@@ -149,6 +154,7 @@ def run_ros2_detect(args: argparse.Namespace) -> int:
             log_every=args.log_every,
             max_frames=args.max_frames,
             ros_args=args.ros_args,
+            skip_nonfinite=args.skip_nonfinite,
         )
     except (RosUnavailable, OSError, ValueError) as e:
         print(f"indoorbev ros2 detect: error: {e}", file=sys.stderr)

@@ -72,12 +72,14 @@ class Detector:
 
     Bad input never raises: a cloud without x, y or z, with truncated data, or without a
     single finite point inside the grid gives a warning and empty outputs (no object, no
-    marker, an all-unknown grid). Non-finite points (the no-return rows of organized
-    clouds) are dropped with a warning and the rest is processed.
+    marker, an all-unknown grid). So does a cloud holding non-finite points, unless
+    ``skip_nonfinite`` (organized clouds that mark missing returns with NaN): then those
+    points are dropped with a warning and the rest is processed.
     """
 
-    def __init__(self, config, params, ts=None):
+    def __init__(self, config, params, ts=None, skip_nonfinite: bool = False):
         self.config = config
+        self.skip_nonfinite = skip_nonfinite
         self.ts = ts if ts is not None else default_typestore()
         self.names = config.data.class_names
         self.predictor = Predictor(config, jax.tree.map(jnp.asarray, params))
@@ -110,6 +112,9 @@ class Detector:
                 f"{counts['dropped_points']} points beyond data.max_points="
                 f"{self.config.data.max_points} dropped"
             )
+        if counts["nonfinite_points"] and not self.skip_nonfinite:
+            return self._empty(stamp, frame, f"{source}: {notes[0]}; cloud skipped "
+                               "(--skip-nonfinite processes the finite points)")  # fmt: skip
         if not valid.any():
             why = "empty" if len(points) == 0 else "no finite point inside the grid"
             return self._empty(stamp, frame, f"{source}: {why}; {len(points)} points")
@@ -180,6 +185,7 @@ def run_detect_node(
     log_every: float = 5.0,
     max_frames: int = 0,
     ros_args: list[str] | None = None,
+    skip_nonfinite: bool = False,
 ) -> dict:
     """Runs the detect node until Ctrl-C / SIGTERM (or ``max_frames`` processed frames).
 
@@ -194,6 +200,8 @@ def run_detect_node(
       log_every: seconds between summary log lines.
       max_frames: stop after this many processed frames (0: run until stopped).
       ros_args: arguments after ``--ros-args`` (remappings, log levels), passed to rclpy.
+      skip_nonfinite: process the finite points of clouds holding NaN/Inf points
+        (default: warn and publish empty outputs for such a cloud).
 
     Returns:
       the statistics of ``_Stats.summary`` (counts and latency percentiles).
@@ -206,7 +214,7 @@ def run_detect_node(
 
         ensure_new(record)
     config, params = load_model(checkpoint)
-    detector = Detector(config, params)
+    detector = Detector(config, params, skip_nonfinite=skip_nonfinite)
     compile_s = detector.warmup()
     context, node = runtime.start_node("indoorbev_detect", ros_args)
     log = node.get_logger()
