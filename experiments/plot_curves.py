@@ -13,6 +13,7 @@ from pathlib import Path
 
 PANELS = (
     ("train", "loss", "training loss"),
+    ("train", "dice_final", "train dice loss (last layer)"),
     ("eval", "ap0.25", "val AP@0.25"),
     ("eval", "ap0.5", "val AP@0.50"),
     ("eval", "pq", "val PQ"),
