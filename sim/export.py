@@ -53,7 +53,8 @@ def frame_id(index: int) -> str:
 
 
 @functools.lru_cache(maxsize=4)
-def _scene_fn(config: Config):
+def scene_fn(config: Config):
+    """Jitted ``(key, test flag) -> one scene of T frames`` (one program for every split)."""
     from indoorbev_sim import generate
 
     def run(key, test):
@@ -88,19 +89,25 @@ def _check_meta(root: Path, meta: dict) -> None:
         os.replace(tmp, path)
 
 
+def scene_frame(batch, info, t: int) -> tuple[np.ndarray, kitti.ObjectLabels]:
+    """(valid points [N, 4], labels) of frame t of a one-scene batch (arrays [1, T, ...])."""
+    valid = np.asarray(batch.targets.valid[0, t])
+    labels = kitti.ObjectLabels(
+        classes=np.asarray(batch.targets.classes[0, t])[valid],
+        dims=np.asarray(batch.targets.dims[0, t])[valid],
+        pos=np.asarray(batch.targets.pos[0, t])[valid],
+        yaw=np.asarray(batch.targets.yaw[0, t])[valid],
+        occlusion=np.asarray(info.occlusion[0, t])[valid],
+    )
+    points = np.asarray(batch.points[0, t])[np.asarray(batch.point_valid[0, t])]
+    return points, labels
+
+
 def write_scene(root: Path, config: Config, batch, info, frame_ids: list[str]) -> None:
     """Writes the T frames of one scene (arrays [1, T, ...]) under ``frame_ids``."""
     names = config.data.class_names
     for t, fid in enumerate(frame_ids):
-        valid = np.asarray(batch.targets.valid[0, t])
-        labels = kitti.ObjectLabels(
-            classes=np.asarray(batch.targets.classes[0, t])[valid],
-            dims=np.asarray(batch.targets.dims[0, t])[valid],
-            pos=np.asarray(batch.targets.pos[0, t])[valid],
-            yaw=np.asarray(batch.targets.yaw[0, t])[valid],
-            occlusion=np.asarray(info.occlusion[0, t])[valid],
-        )
-        points = np.asarray(batch.points[0, t])[np.asarray(batch.point_valid[0, t])]
+        points, labels = scene_frame(batch, info, t)
         ids = np.asarray(batch.targets.instance_ids[0, t])
         kitti.write_frame(root, fid, points, labels, names, instance_ids=ids)
 
@@ -136,7 +143,7 @@ def export(
     num_scenes = math.ceil(frames / t_len)
     key = jax.random.key(seed)
     splits: dict[str, list[str]] = {s: [] for s in SPLITS}
-    fn = _scene_fn(config)
+    fn = scene_fn(config)
     with tqdm(total=frames, desc="export", unit="frame", disable=not progress) as bar:
         for j in range(num_scenes):
             ids = [frame_id(j * t_len + t) for t in range(t_len) if j * t_len + t < frames]

@@ -12,7 +12,6 @@ publishing loop, so the rate holds whenever generation keeps up (it says when it
 
 from __future__ import annotations
 
-import functools
 import queue
 import threading
 import time
@@ -22,36 +21,23 @@ import jax
 import numpy as np
 
 from indoorbev_jax.config import Config
-from indoorbev_jax.data import kitti
 from indoorbev_jax.rosbag import MARKER_ARRAY, POINTCLOUD2, cloud_msg, markers_msg, typestore
 
 POINTS_TOPIC, OBJECTS_TOPIC = "/lidar/points", "/lidar/objects"
 
 
-@functools.lru_cache(maxsize=4)
-def _scene_fn(config: Config, split: str):
-    from indoorbev_sim import generate
-
-    return jax.jit(lambda key: generate.generate_sequences(key, config, 1, split))
-
-
 def scene_frames(config: Config, seed: int, split: str = "test") -> Iterator:
     """Endless (points float32 [N, 4], ground-truth labels) frames, scene after scene."""
-    fn = _scene_fn(config, split)
+    from indoorbev_sim.export import scene_fn, scene_frame
+    from indoorbev_sim.scenes import split_flag
+
+    fn, test = scene_fn(config), split_flag(split)
     key = jax.random.key(seed)
     for j in range(2**31):
-        batch, info = jax.device_get(fn(jax.random.fold_in(key, j)))
+        batch, info = jax.device_get(fn(jax.random.fold_in(key, j), test))
         for t in range(config.sim.frames_per_sequence):
-            valid = np.asarray(batch.targets.valid[0, t])
-            labels = kitti.ObjectLabels(
-                classes=batch.targets.classes[0, t][valid],
-                dims=batch.targets.dims[0, t][valid],
-                pos=batch.targets.pos[0, t][valid],
-                yaw=batch.targets.yaw[0, t][valid],
-                occlusion=info.occlusion[0, t][valid],
-            )
-            points = np.asarray(batch.points[0, t], np.float32)[batch.point_valid[0, t]]
-            yield points, labels
+            points, labels = scene_frame(batch, info, t)
+            yield points.astype(np.float32), labels
 
 
 def publish(

@@ -11,6 +11,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from indoorbev_jax.config import GridConfig
 
@@ -58,3 +59,16 @@ def cell_index(x: jax.Array, y: jax.Array, grid: GridConfig):
     row = jnp.floor((y - grid.y_range[0]) / grid.cell_size).astype(jnp.int32)
     inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
     return jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1), inside
+
+
+def box_corners(xy, lw, yaw) -> np.ndarray:
+    """float [M, 4, 2]: xy corners of boxes with centres ``xy [M, 2]``, sizes ``lw [M, 2]``
+    (length along the heading, width) and headings ``yaw [M]``, counter-clockwise from
+    (+length/2, +width/2) in the box frame."""
+    xy, lw, yaw = np.asarray(xy), np.asarray(lw), np.asarray(yaw)
+    c, s = np.cos(yaw), np.sin(yaw)  # [M]
+    signs = np.array([(1, 1), (-1, 1), (-1, -1), (1, -1)], np.float32)  # [4, 2]
+    half = signs[None] * lw[:, None, :] / 2  # [M, 4, 2] in the box frame
+    x = c[:, None] * half[..., 0] - s[:, None] * half[..., 1]  # [M, 4]
+    y = s[:, None] * half[..., 0] + c[:, None] * half[..., 1]  # [M, 4]
+    return np.stack([x, y], -1) + xy[:, None, :]

@@ -62,11 +62,45 @@ def cloud_msg(ts, points: np.ndarray, stamp_ns: int, frame: str = "lidar"):
     )
 
 
+def marker(ts, hdr, ns: str, ident: int, kind: int, **fields):
+    """A visualization_msgs/Marker (action ADD, identity pose, white, no lifetime) with every
+    field set, as rosbags needs; ``fields`` override any of them."""
+    t = ts.types
+    empty = np.zeros(0, np.uint8)
+    cls = t["visualization_msgs/msg/Marker"]
+    values = {
+        "header": hdr,
+        "ns": ns,
+        "id": ident,
+        "type": kind,
+        "action": cls.ADD,
+        "pose": t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](0.0, 0.0, 0.0),
+            orientation=t["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0),
+        ),
+        "scale": t["geometry_msgs/msg/Vector3"](1.0, 1.0, 1.0),
+        "color": t["std_msgs/msg/ColorRGBA"](1.0, 1.0, 1.0, 1.0),
+        "lifetime": t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+        "frame_locked": False,
+        "points": [],
+        "colors": [],
+        "texture_resource": "",
+        "texture": t["sensor_msgs/msg/CompressedImage"](header=hdr, format="", data=empty),
+        "uv_coordinates": [],
+        "text": "",
+        "mesh_resource": "",
+        "mesh_file": t["visualization_msgs/msg/MeshFile"](filename="", data=empty),
+        "mesh_use_embedded_materials": False,
+    }
+    values.update(fields)
+    return cls(**values)
+
+
 def markers_msg(ts, labels: kitti.ObjectLabels, names, stamp_ns: int, frame: str = "lidar"):
     """A MarkerArray with one CUBE per object: namespace = class name, text = class and
     occlusion (ground truth) or class and score (predictions)."""
     t = ts.types
-    marker = t["visualization_msgs/msg/Marker"]
+    hdr = header(ts, stamp_ns, frame)
     markers = []
     for k in range(len(labels)):
         yaw = float(labels.yaw[k])
@@ -85,30 +119,16 @@ def markers_msg(ts, labels: kitti.ObjectLabels, names, stamp_ns: int, frame: str
         )
         markers.append(
             marker(
-                header=header(ts, stamp_ns, frame),
-                ns=name,
-                id=k,
-                type=marker.CUBE,
-                action=marker.ADD,
+                ts,
+                hdr,
+                name,
+                k,
+                t["visualization_msgs/msg/Marker"].CUBE,
                 pose=pose,
                 scale=t["geometry_msgs/msg/Vector3"](*(float(v) for v in labels.dims[k])),
                 color=t["std_msgs/msg/ColorRGBA"](r=hue, g=1.0 - hue, b=0.5, a=0.6),
-                lifetime=t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
-                frame_locked=False,
-                points=[],
-                colors=[],
-                texture_resource="",
-                texture=t["sensor_msgs/msg/CompressedImage"](
-                    header=header(ts, stamp_ns, frame), format="", data=np.zeros(0, np.uint8)
-                ),
-                uv_coordinates=[],
                 text=f"{name} {extra}",
-                mesh_resource="",
-                mesh_file=t["visualization_msgs/msg/MeshFile"](
-                    filename="", data=np.zeros(0, np.uint8)
-                ),
-                mesh_use_embedded_materials=False,
-            )
+            )  # fmt: skip
         )
     return t[MARKER_ARRAY](markers=markers)
 

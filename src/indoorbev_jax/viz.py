@@ -7,6 +7,7 @@ from PIL import Image, ImageDraw
 
 from indoorbev_jax.config import GridConfig
 from indoorbev_jax.data import kitti
+from indoorbev_jax.geometry import box_corners
 
 PALETTE = np.array(
     [[230, 25, 75], [60, 180, 75], [255, 225, 25], [0, 130, 200], [245, 130, 48],
@@ -76,15 +77,16 @@ def render_bev(
                 img[r + dr, u + du] = cols
     pic = Image.fromarray(img)
     draw = ImageDraw.Draw(pic)
+    corners = (
+        box_corners(labels.pos[:, :2], labels.dims[:, :2], labels.yaw)
+        if labels is not None
+        else None
+    )
     for k in range(len(labels) if labels is not None else 0):
-        (x, y, _), (length, width, _) = labels.pos[k], labels.dims[k]
+        (x, y, _), (length, _, _) = labels.pos[k], labels.dims[k]
         c, s = np.cos(labels.yaw[k]), np.sin(labels.yaw[k])
-        corners = [
-            (x + c * a * length / 2 - s * b * width / 2, y + s * a * length / 2 + c * b * width / 2)
-            for a, b in ((1, 1), (-1, 1), (-1, -1), (1, -1))
-        ]
         colour = tuple(int(q) for q in PALETTE[k % len(PALETTE)])
-        draw.polygon([px(*p) for p in corners], outline=colour)
+        draw.polygon([px(*p) for p in corners[k]], outline=colour)
         draw.line([px(x, y), px(x + c * length / 2, y + s * length / 2)], fill=colour)
         text = class_names[int(labels.classes[k])]
         if labels.scores is not None:

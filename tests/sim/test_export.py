@@ -44,7 +44,7 @@ def exported(tmp_path_factory, cache):
 
 def test_kitti_round_trip_is_exact(exported):
     root, _, splits = exported
-    fn = export_mod._scene_fn(CFG)
+    fn = export_mod.scene_fn(CFG)
     for j in (0, 9):  # a train scene and a test scene, regenerated
         batch, info = fn(jax.random.fold_in(jax.random.key(SEED), j), j == 9)
         for t in range(CFG.sim.frames_per_sequence):
@@ -72,7 +72,7 @@ def test_kitti_round_trip_is_exact(exported):
 def test_test_split_comes_from_held_out_plans(exported):
     from indoorbev_sim import layouts
 
-    fn = export_mod._scene_fn(CFG)
+    fn = export_mod.scene_fn(CFG)
     held = {layouts.plan_id(n, CFG.sim.plans_per_layout) for n in CFG.sim.test_layouts}
     for j in range(10):
         _, info = fn(
@@ -155,7 +155,7 @@ def test_resume_after_kill_equals_uninterrupted_export(exported, cache, tmp_path
 def test_sequence_frames_follow_the_motion(exported):
     """Within a sequence the lidar rides its robot and labelled objects sit where their
     world motion puts them, seen from the moving sensor."""
-    fn = export_mod._scene_fn(CFG)
+    fn = export_mod.scene_fn(CFG)
     dt = CFG.sim.frame_dt
     checked = 0
     for j in range(6):

@@ -139,6 +139,18 @@ def positional_code(h: int, w: int, features: int, s: int = 1) -> tuple[np.ndarr
     return cy, cx
 
 
+def code_map(code_y: np.ndarray, code_x: np.ndarray, dtype) -> jax.Array:
+    """[H', W', C] map of the separable code from ``positional_code`` (y half first)."""
+    hm, wm, half = len(code_y), len(code_x), code_y.shape[-1]
+    return jnp.concatenate(
+        [
+            jnp.broadcast_to(jnp.asarray(code_y, dtype)[:, None, :], (hm, wm, half)),
+            jnp.broadcast_to(jnp.asarray(code_x, dtype)[None, :, :], (hm, wm, half)),
+        ],
+        axis=-1,
+    )
+
+
 class Attention(nn.Module):
     """Multi-head attention with separate query / key / value inputs.
 
@@ -341,14 +353,7 @@ class SimpleMaskHead(nn.Module):
         # Cross-attention memory: F_proj itself (paper) or its s x s average (memory_stride).
         mem = pool_memory(f_proj, s)  # [B, H', W', C]
         hm, wm = mem.shape[1:3]
-        cy, cx = positional_code(h, w, c, s)  # [H', C/2], [W', C/2]
-        code = jnp.concatenate(
-            [
-                jnp.broadcast_to(jnp.asarray(cy, self.dtype)[:, None, :], (hm, wm, c // 2)),
-                jnp.broadcast_to(jnp.asarray(cx, self.dtype)[None, :, :], (hm, wm, c // 2)),
-            ],
-            axis=-1,
-        )  # [H', W', C]
+        code = code_map(*positional_code(h, w, c, s), self.dtype)  # [H', W', C]
         mem_pos = (mem + code).reshape(b, hm * wm, c)  # [B, S, C]
         mem = mem.reshape(b, hm * wm, c)  # [B, S, C]
         key_ok = None
@@ -374,14 +379,7 @@ class SimpleMaskHead(nn.Module):
         m = m.transpose(1, 0, 2, 3).reshape(b, n_l * n_q, c)  # [B, L*Q, C]
         pixels = f_proj
         if cfg.mask_positional:
-            py, px = positional_code(h, w, c)
-            pixels = pixels + jnp.concatenate(
-                [
-                    jnp.broadcast_to(jnp.asarray(py, self.dtype)[:, None, :], (h, w, c // 2)),
-                    jnp.broadcast_to(jnp.asarray(px, self.dtype)[None, :, :], (h, w, c // 2)),
-                ],
-                axis=-1,
-            )
+            pixels = pixels + code_map(*positional_code(h, w, c), self.dtype)  # [H, W, C]
         masks = jnp.einsum("bkc,bcn->bkn", m, pixels.reshape(b, h * w, c).transpose(0, 2, 1))
         masks = masks.reshape(b, n_l, n_q, h, w).transpose(1, 0, 2, 3, 4)  # [L, B, Q, H, W]
         out = {

@@ -22,7 +22,8 @@ import numpy as np
 
 from indoorbev_jax.config import GridConfig
 from indoorbev_jax.data import kitti
-from indoorbev_jax.rosbag import MARKER_ARRAY, POINTCLOUD2, header
+from indoorbev_jax.geometry import box_corners
+from indoorbev_jax.rosbag import MARKER_ARRAY, POINTCLOUD2, header, marker
 
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 DETECTION_FIELDS = ("x", "y", "z", "length", "width", "height", "yaw", "score", "class_id")
@@ -82,56 +83,18 @@ def detections_to_labels(msg) -> kitti.ObjectLabels:
     )
 
 
-def _marker(ts, hdr, ns: str, ident: int, kind: int, **fields):
-    """A visualization_msgs/Marker with every field set (rosbags wants them all)."""
-    t = ts.types
-    marker = t["visualization_msgs/msg/Marker"]
-    empty = np.zeros(0, np.uint8)
-    values = {
-        "header": hdr,
-        "ns": ns,
-        "id": ident,
-        "type": kind,
-        "action": marker.ADD,
-        "pose": t["geometry_msgs/msg/Pose"](
-            position=t["geometry_msgs/msg/Point"](0.0, 0.0, 0.0),
-            orientation=t["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0),
-        ),
-        "scale": t["geometry_msgs/msg/Vector3"](1.0, 1.0, 1.0),
-        "color": t["std_msgs/msg/ColorRGBA"](1.0, 1.0, 1.0, 1.0),
-        "lifetime": t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
-        "frame_locked": False,
-        "points": [],
-        "colors": [],
-        "texture_resource": "",
-        "texture": t["sensor_msgs/msg/CompressedImage"](header=hdr, format="", data=empty),
-        "uv_coordinates": [],
-        "text": "",
-        "mesh_resource": "",
-        "mesh_file": t["visualization_msgs/msg/MeshFile"](filename="", data=empty),
-        "mesh_use_embedded_materials": False,
-    }
-    values.update(fields)
-    return marker(**values)
-
-
 def footprint_corners(labels: kitti.ObjectLabels) -> np.ndarray:
     """float32 [M, 4, 2]: the xy corners of each box footprint, counter-clockwise."""
-    c, s = np.cos(labels.yaw), np.sin(labels.yaw)  # [M]
-    signs = np.array([(1, 1), (-1, 1), (-1, -1), (1, -1)], np.float32)  # [4, 2]
-    half = signs[None] * labels.dims[:, None, :2] / 2  # [M, 4, 2] in the box frame
-    x = c[:, None] * half[..., 0] - s[:, None] * half[..., 1]  # [M, 4]
-    y = s[:, None] * half[..., 0] + c[:, None] * half[..., 1]  # [M, 4]
-    return np.stack([x, y], -1) + labels.pos[:, None, :2]  # [M, 4, 2]
+    return box_corners(labels.pos[:, :2], labels.dims[:, :2], labels.yaw)
 
 
 def footprint_markers_msg(ts, labels: kitti.ObjectLabels, names, stamp: int, frame: str):
     """RViz markers: DELETEALL, then per object a footprint LINE_STRIP and a TEXT label."""
     t = ts.types
-    marker = t["visualization_msgs/msg/Marker"]
+    mk = t["visualization_msgs/msg/Marker"]
     point = t["geometry_msgs/msg/Point"]
     hdr = header(ts, stamp, frame)
-    markers = [_marker(ts, hdr, "", 0, marker.CUBE, action=marker.DELETEALL)]
+    markers = [marker(ts, hdr, "", 0, mk.CUBE, action=mk.DELETEALL)]
     corners = footprint_corners(labels)
     for k in range(len(labels)):
         cls = int(labels.classes[k])
@@ -140,14 +103,14 @@ def footprint_markers_msg(ts, labels: kitti.ObjectLabels, names, stamp: int, fra
         z = float(labels.pos[k, 2] - labels.dims[k, 2] / 2)  # the outline lies on the floor
         ring = [point(float(x), float(y), z) for x, y in corners[k]]
         markers.append(
-            _marker(ts, hdr, "footprints", k, marker.LINE_STRIP, points=ring + ring[:1],
+            marker(ts, hdr, "footprints", k, mk.LINE_STRIP, points=ring + ring[:1],
                     scale=t["geometry_msgs/msg/Vector3"](0.03, 0.0, 0.0), color=colour)
         )  # fmt: skip
         score = f" {float(labels.scores[k]):.2f}" if labels.scores is not None else ""
         top = point(float(labels.pos[k, 0]), float(labels.pos[k, 1]),
                     float(labels.pos[k, 2] + labels.dims[k, 2] / 2 + 0.2))  # fmt: skip
         markers.append(
-            _marker(ts, hdr, "labels", k, marker.TEXT_VIEW_FACING, text=f"{names[cls]}{score}",
+            marker(ts, hdr, "labels", k, mk.TEXT_VIEW_FACING, text=f"{names[cls]}{score}",
                     pose=t["geometry_msgs/msg/Pose"](
                         position=top, orientation=t["geometry_msgs/msg/Quaternion"](0, 0, 0, 1.0)
                     ),
