@@ -1,0 +1,37 @@
+"""Bad input to the evaluation and plotting scripts gets an error naming what is wrong."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from indoorbev_jax.config import Config
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _script(name: str):
+    spec = importlib.util.spec_from_file_location(name, REPO / "experiments" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_plot_curves_names_the_malformed_line(tmp_path):
+    plot = _script("plot_curves")
+    (tmp_path / "metrics.jsonl").write_text(
+        '{"step": 50, "kind": "train", "loss": 3.0}\n{"step": 100, "kind": "train", "loss":\n'
+    )
+    with pytest.raises(SystemExit, match=r"metrics\.jsonl:2: not a JSON line"):
+        plot.read_log(tmp_path)
+    (tmp_path / "metrics.jsonl").write_text(
+        '{"step": 50, "kind": "train", "loss": 3.0}\n{"step": 50, "kind": "eval", "pq": null}\n'
+    )
+    log = plot.read_log(tmp_path)
+    assert [r["step"] for r in log["train"]] == [50] and log["eval"][0]["pq"] is None
+
+
+def test_eval_sim_rejects_a_frame_count_the_batch_does_not_divide():
+    eval_sim = _script("eval_sim")
+    with pytest.raises(ValueError, match="--frames 10 must be a multiple of --batch 8"):
+        eval_sim.evaluate_sim(Config.tiny(), None, "test", 10, 8, 0, progress=False)
