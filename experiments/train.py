@@ -11,7 +11,7 @@ import argparse
 import dataclasses
 import logging
 
-from indoorbev_jax.config import Config
+from indoorbev_jax.config import Config, ConfigError, with_overrides
 from indoorbev_jax.train import train_and_evaluate
 
 
@@ -31,6 +31,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--bfloat16", action="store_true", help="bfloat16 compute (GPUs)")
     p.add_argument("--skip-bad-frames", action="store_true", help="skip malformed frames")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override any config field, VALUE as JSON (repeatable), e.g. "
+        "--set head.upsampler_skips=false --set augment.gt_sampling=4",
+    )
     return p.parse_args(argv)
 
 
@@ -52,7 +60,11 @@ def config_from_args(args: argparse.Namespace) -> Config:
         train["bfloat16"] = True
     if "total_steps" in train and "warmup_steps" not in train:
         train["warmup_steps"] = min(config.train.warmup_steps, train["total_steps"])
-    return dataclasses.replace(config, train=dataclasses.replace(config.train, **train))
+    config = dataclasses.replace(config, train=dataclasses.replace(config.train, **train))
+    try:
+        return with_overrides(config, args.set)
+    except ConfigError as e:
+        raise SystemExit(f"--set: {e}") from None
 
 
 def main(argv=None) -> None:

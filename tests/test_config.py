@@ -50,3 +50,22 @@ def test_from_dict_rejects_unknown_fields():
     d["grid"]["cellsize"] = 0.1
     with pytest.raises(ConfigError, match="grid.cellsize"):
         Config.from_dict(d)
+
+
+def test_with_overrides_parses_json_values_and_names_bad_items():
+    from indoorbev_jax.config import with_overrides
+
+    cfg = with_overrides(
+        Config.small(),
+        ["head.upsampler_skips=false", "data.mask_targets=box", "backbone.strides=[2,2,2,2]"],
+    )
+    assert cfg.head.upsampler_skips is False and cfg.data.mask_targets == "box"
+    assert cfg.backbone.strides == (2, 2, 2, 2) and cfg.head.mask_prior  # the rest is kept
+    for item, message in [
+        ("head.nope=1", "head has no field 'nope'"),
+        ("x=1", "expected SECTION.FIELD=VALUE"),
+        ("head.upsampler_skips", "expected SECTION.FIELD=VALUE"),
+        ("data.mask_targets=circle", "data.mask_targets"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            with_overrides(Config.small(), [item])

@@ -191,3 +191,31 @@ def test_config_mismatch_in_workdir_is_an_error(tmp_path):
     (tmp_path / "config.json").write_text(Config.small().to_json())
     with pytest.raises(ValueError, match="config.json: the workdir holds a run"):
         T.train_and_evaluate(CFG, tmp_path, data=str(tmp_path), progress=False)
+
+
+def test_box_targets_are_the_rasterised_labelled_boxes(batch):
+    from indoorbev_jax.data.rasterize import rasterize_boxes
+
+    boxed = T.box_targets(batch, CFG.grid).targets
+    t = batch.targets
+    for b in range(t.valid.shape[0]):
+        boxes = np.concatenate(
+            [
+                np.asarray(t.pos[b, :, :2]),
+                np.asarray(t.dims[b, :, :2]),
+                np.asarray(t.yaw[b])[:, None],
+            ],
+            1,
+        )
+        ids, masks = rasterize_boxes(jnp.asarray(boxes), t.valid[b], CFG.grid)
+        np.testing.assert_array_equal(boxed.masks[b], masks)
+        np.testing.assert_array_equal(boxed.instance_ids[b], ids)
+    np.testing.assert_array_equal(boxed.classes, t.classes)
+
+
+def test_gt_database_holds_every_valid_object_of_its_batches(batch):
+    db = T.gt_database(lambda i: batch, 2, CFG.grid)
+    n = int(np.asarray(batch.targets.valid).sum())
+    assert db.classes.shape == (2 * n,)
+    want = np.asarray(batch.targets.classes)[np.asarray(batch.targets.valid)]
+    np.testing.assert_array_equal(db.classes, np.concatenate([want, want]))

@@ -375,3 +375,51 @@ def set_loss(
     parts["num_targets"] = num_targets
     total = sum(weights[name] * parts[name] for name in TERMS)
     return jnp.asarray(total, jnp.float32), parts
+
+
+def semantic_targets(targets: Targets, num_classes: int) -> jax.Array:
+    """Multi-label semantic BEV map: float32 [B, H, W, K], 1 where a valid object of class k
+    covers the cell (overlapping footprints may set several classes)."""
+    b, m, h, w = targets.masks.shape
+    onehot = jax.nn.one_hot(targets.classes, num_classes) * targets.valid[..., None]  # [B, M, K]
+    cover = jnp.einsum(
+        "bmn,bmk->bnk", targets.masks.reshape(b, m, h * w).astype(jnp.float32), onehot
+    )
+    return (cover > 0).astype(jnp.float32).reshape(b, h, w, num_classes)
+
+
+def seed_loss(
+    seeds: jax.Array,
+    targets: Targets,
+    config: LossConfig = DEFAULT_CONFIG,
+    *,
+    axis_name: str | None = None,
+) -> jax.Array:
+    """Dense loss of the query-selection head (``HeadConfig.query_init = "select"``).
+
+    Sigmoid focal loss (``config.focal_alpha`` / ``focal_gamma``) of the seed logits against
+    ``semantic_targets``, summed over cells and classes and divided by the number of
+    foreground (cell, class) pairs in the global batch (at least 1), as RetinaNet
+    normalises by its positive anchors.
+
+    Args:
+      seeds: [B, H, W, K] logits (the head's ``intermediates/seeds``).
+      targets: ``Targets`` of the same frames.
+      config: focal alpha and gamma.
+      axis_name: as in ``set_loss``: the normaliser is ``psum``-ed over it.
+
+    Returns:
+      float32 scalar (this shard's share under ``axis_name``).
+    """
+    if seeds.ndim != 4 or seeds.shape[:3] != targets.masks.shape[:1] + targets.masks.shape[2:]:
+        raise ValueError(
+            f"seeds must be [B, H, W, K] on the targets' grid {targets.masks.shape}, "
+            f"got {seeds.shape}"
+        )
+    t = semantic_targets(targets, seeds.shape[-1])
+    pos, neg = _focal_terms(seeds.astype(jnp.float32), config.focal_alpha, config.focal_gamma)
+    total = jnp.where(t > 0, pos, neg).sum()
+    num_pos = t.sum()
+    if axis_name is not None:
+        num_pos = jax.lax.psum(num_pos, axis_name)
+    return total / jnp.maximum(num_pos, 1.0)

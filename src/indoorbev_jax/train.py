@@ -35,9 +35,10 @@ import orbax.checkpoint as ocp
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from indoorbev_jax.augment import ObjectDatabase, augment_batch
+from indoorbev_jax.augment import ObjectDatabase, augment_batch, build_object_database
 from indoorbev_jax.config import Config
-from indoorbev_jax.losses import set_loss
+from indoorbev_jax.data.rasterize import rasterize_boxes
+from indoorbev_jax.losses import seed_loss, set_loss
 from indoorbev_jax.models import IndoorBEV
 from indoorbev_jax.types import Batch
 
@@ -145,6 +146,7 @@ def make_train_step(
     optimizer = make_optimizer(config)
     t = config.train
     needs_loss_key = config.loss.num_mask_points > 0
+    seeded = config.has_seed_head
 
     def step_fn(state: TrainState, batch: Batch, key: jax.Array, hyper: Hyper):
         k_aug, k_loss = jax.random.split(jax.random.fold_in(key, state.step))
@@ -152,14 +154,24 @@ def make_train_step(
             batch = augment_batch(k_aug, batch, config.grid, config.augment, database)
 
         def loss_fn(params):
-            predictions = model.apply(params, batch.points, batch.point_valid)
-            return set_loss(
+            if seeded:
+                predictions, inter = model.apply(
+                    params, batch.points, batch.point_valid, mutable=["intermediates"]
+                )
+            else:
+                predictions = model.apply(params, batch.points, batch.point_valid)
+            loss, parts = set_loss(
                 predictions,
                 batch.targets,
                 hyper.weights,
                 config.loss,
                 key=k_loss if needs_loss_key else None,
             )
+            if seeded:
+                (seeds,) = inter["intermediates"]["head"]["seeds"]
+                parts["seed"] = seed_loss(seeds, batch.targets, config.loss)
+                loss = loss + config.loss.seed_weight * parts["seed"]
+            return loss, parts
 
         (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
         finite = jnp.isfinite(loss) & _all_finite(grads)
@@ -211,6 +223,22 @@ def replicate(tree, mesh: Mesh):
     return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
 
 
+def box_targets(batch: Batch, grid) -> Batch:
+    """The batch with each object's footprint replaced by its rasterised labelled box
+    (``data.mask_targets = "box"``, the ablation against true-shape targets)."""
+    t = batch.targets
+    boxes = jnp.concatenate([t.pos[..., :2], t.dims[..., :2], t.yaw[..., None]], -1)  # [B, M, 5]
+    ids, masks = jax.vmap(rasterize_boxes, in_axes=(0, 0, None))(boxes, t.valid, grid)
+    return batch.replace(targets=t.replace(masks=masks, instance_ids=ids))
+
+
+def gt_database(source: Callable[[int], Batch], batches: int, grid) -> ObjectDatabase:
+    """Object database for ground-truth sampling from the first ``batches`` training batches
+    (``augment.gt_sampling > 0``)."""
+    parts = [build_object_database(source(i), grid) for i in range(batches)]
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
+
+
 class SimSource:
     """On-device simulated batches: batch of step s = ``generate_batch(fold_in(key, s))``
     from the simulator's ``split`` (train, val or test layouts)."""
@@ -219,7 +247,13 @@ class SimSource:
         from indoorbev_sim import generate_batch
 
         self.key = key
-        self._generate = jax.jit(lambda k: generate_batch(k, config, split))
+        boxes = split == "train" and config.data.mask_targets == "box"
+
+        def generate(k):
+            batch = generate_batch(k, config, split)
+            return box_targets(batch, config.grid) if boxes else batch
+
+        self._generate = jax.jit(generate)
 
     def __call__(self, step: int) -> Batch:
         return self._generate(jax.random.fold_in(self.key, step))
@@ -426,6 +460,10 @@ def _scalars(metrics: dict) -> dict:
     return {k: float(np.mean(np.asarray(v))) for k, v in metrics.items()}
 
 
+# Training batches cut into the ground-truth sampling database.
+GT_DATABASE_BATCHES = 8
+
+
 def make_sources(config: Config, data: str | None, seed: int, skip_bad: bool):
     """(train source, list of validation batches) for ``data`` = None (simulator) or a
     KITTI-style folder with ``train`` and ``val`` splits."""
@@ -492,8 +530,13 @@ def train_and_evaluate(
     state = replicate(state, mesh)
     hyper = replicate(Hyper.from_config(config), mesh)
     step_key = jax.random.fold_in(key, 1)
-    train_step = jax.jit(make_train_step(config), donate_argnums=0)
     source, val_batches = make_sources(config, data, t.seed, skip_bad_frames)
+    database = None
+    if t.augment and config.augment.gt_sampling > 0:
+        # Cut from the first training batches; the same ones on every resume.
+        database = gt_database(source, GT_DATABASE_BATCHES, config.grid)
+        log.info("ground-truth sampling database: %d objects", database.classes.shape[0])
+    train_step = jax.jit(make_train_step(config, database), donate_argnums=0)
     predict_fn = make_predict_fn(config)
 
     bar = tqdm(total=t.total_steps, initial=start, disable=not progress, unit="step")

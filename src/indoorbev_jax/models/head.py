@@ -17,8 +17,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from indoorbev_jax.config import HeadConfig
+from indoorbev_jax.config import GridConfig, HeadConfig
+from indoorbev_jax.geometry import cell_centers
 from indoorbev_jax.models.layers import Dense
+
+# Initial foreground probability of the seed head (RetinaNet's prior).
+_SEED_PRIOR = 0.01
+# Initial mask-prior scale softplus(-2) = 0.13 per m^2: about -1.2 logits at 3 m.
+_PRIOR_BIAS = -2.0
 
 
 def depth_to_space(x: jax.Array, s: int) -> jax.Array:
@@ -250,6 +256,24 @@ def _attend_chunk(attn: Attention, carry, k_in, v_in, key_ok, q):
     return (m_new, den, acc * scale[..., None] + pv), None
 
 
+def peak_cells(score: jax.Array, k: int) -> jax.Array:
+    """The k best local peaks of a score map, best first.
+
+    Args:
+      score: [B, H, W] scores in [0, 1] (probabilities).
+      k: cells to pick, at most H * W.
+
+    Returns:
+      int32 [B, k] flat cell indices (row * W + col). Cells that equal the maximum of their
+      3 x 3 neighbourhood come first, by score; if a map has fewer than k of them, the best
+      remaining cells fill the rest.
+    """
+    b, h, w = score.shape
+    peak = jax.lax.reduce_window(score, -jnp.inf, jax.lax.max, (1, 3, 3), (1, 1, 1), "SAME")
+    rank = jnp.where(score >= peak, score, score - 2.0).reshape(b, h * w)  # peaks in [0, 1]
+    return jax.lax.top_k(rank, k)[1]
+
+
 def chunk_memory(mem: jax.Array, chunk: int) -> tuple[jax.Array, np.ndarray]:
     """Split a memory into equal chunks for the streamed ``Attention``.
 
@@ -322,11 +346,14 @@ class SimpleMaskHead(nn.Module):
       config: head fields.
       num_classes: foreground classes (logits get one more, the background).
       dtype: computation dtype.
+      grid: the BEV grid (cell centres in metres); needed by ``query_init="select"``
+        (anchors) and ``mask_prior``.
     """
 
     config: HeadConfig
     num_classes: int
     dtype: jnp.dtype = jnp.float32
+    grid: GridConfig | None = None
 
     @nn.compact
     def __call__(self, feats: jax.Array) -> dict[str, jax.Array]:
@@ -362,8 +389,24 @@ class SimpleMaskHead(nn.Module):
             mem, key_ok = chunk_memory(mem, cfg.attention_chunk)  # [N, B, Tc, C], [N, Tc]
             mem_pos, _ = chunk_memory(mem_pos, cfg.attention_chunk)
 
-        query = self.param("query_embed", nn.initializers.normal(1.0), (cfg.num_queries, c))
-        t = jnp.broadcast_to(query.astype(self.dtype), (b, cfg.num_queries, c))
+        needs_grid = cfg.query_init == "select" or cfg.mask_prior
+        if needs_grid and self.grid is None:
+            raise ValueError("SimpleMaskHead needs `grid` for query_init='select' / mask_prior")
+        if needs_grid:
+            xs, ys = cell_centers(self.grid)  # [W], [H] metres
+        anchor = jnp.zeros((b, cfg.num_queries, 3), self.dtype)
+        if cfg.query_init == "select":
+            t, cells = self._select_queries(f_proj)  # [B, Q, C], [B, Q]
+            # Box centres are predicted as offsets from the selected cells.
+            anchor_x, anchor_y = xs[cells % w], ys[cells // w]  # [B, Q] each
+            anchor = jnp.stack([anchor_x, anchor_y, jnp.zeros_like(anchor_x)], -1).astype(
+                self.dtype
+            )
+        else:
+            query = self.param("query_embed", nn.initializers.normal(1.0), (cfg.num_queries, c))
+            t = jnp.broadcast_to(query.astype(self.dtype), (b, cfg.num_queries, c))
+            if cfg.semantic_head:
+                self._seed_logits(f_proj)  # trained by the seed loss only
         outs = []
         for i in range(cfg.num_layers):
             t = DecoderLayer(cfg, self.dtype, name=f"decoder{i}")(t, mem, mem_pos, key_ok)
@@ -382,11 +425,64 @@ class SimpleMaskHead(nn.Module):
             pixels = pixels + code_map(*positional_code(h, w, c), self.dtype)  # [H, W, C]
         masks = jnp.einsum("bkc,bcn->bkn", m, pixels.reshape(b, h * w, c).transpose(0, 2, 1))
         masks = masks.reshape(b, n_l, n_q, h, w).transpose(1, 0, 2, 3, 4)  # [L, B, Q, H, W]
+        pos = Dense(3, dtype=self.dtype, name="pos_head")(q) + anchor  # [L, B, Q, 3]
+        if cfg.mask_prior:
+            # log-prior -a_j |p - c_j|^2 around the query's own predicted centre c_j, so a
+            # mask need not tell look-alike objects apart from features alone.
+            a = nn.softplus(
+                Dense(1, dtype=self.dtype, name="prior_scale",
+                      bias_init=nn.initializers.constant(_PRIOR_BIAS))(q)
+            )  # fmt: skip  # [L, B, Q, 1]
+            dx = xs.astype(self.dtype) - pos[..., 0:1]  # [L, B, Q, W]
+            dy = ys.astype(self.dtype) - pos[..., 1:2]  # [L, B, Q, H]
+            masks = masks - a[..., None] * (dy[..., :, None] ** 2 + dx[..., None, :] ** 2)
+        q_cls = q
+        if cfg.mask_pooled_class:
+            # Mean of F_proj under each query's own mask (weights without gradient, so the
+            # class loss does not shape the masks): the class reads the object it outlines.
+            weight = jax.lax.stop_gradient(jax.nn.sigmoid(masks)).reshape(n_l, b, n_q, h * w)
+            pooled = jnp.einsum("lbqn,bnc->lbqc", weight, f_proj.reshape(b, h * w, c))
+            pooled = pooled / (weight.sum(-1, keepdims=True) + 1.0)  # [L, B, Q, C]
+            q_cls = q + Dense(c, dtype=self.dtype, name="pooled_proj")(pooled)
         out = {
-            "logits": Dense(self.num_classes + 1, dtype=self.dtype, name="class_head")(q),
+            "logits": Dense(self.num_classes + 1, dtype=self.dtype, name="class_head")(q_cls),
             "dims": Dense(3, dtype=self.dtype, name="dims_head")(q),
-            "pos": Dense(3, dtype=self.dtype, name="pos_head")(q),
+            "pos": pos,
             "yaw": Dense(1, dtype=self.dtype, name="yaw_head")(q),
             "masks": masks,
         }
         return {k: v.astype(jnp.float32) for k, v in out.items()}
+
+    def _seed_logits(self, f_proj: jax.Array) -> jax.Array:
+        """Dense class logits [B, H, W, K] (``seed_head``, RetinaNet prior init), sown as
+        ``intermediates/seeds`` for ``losses.seed_loss``."""
+        prior = -math.log((1 - _SEED_PRIOR) / _SEED_PRIOR)
+        seeds = Dense(
+            self.num_classes, dtype=self.dtype, name="seed_head",
+            bias_init=nn.initializers.constant(prior),
+        )(f_proj).astype(jnp.float32)  # fmt: skip
+        self.sow("intermediates", "seeds", seeds)
+        return seeds
+
+    def _select_queries(self, f_proj: jax.Array) -> jax.Array:
+        """Two-stage query init (``query_init="select"``): queries from the top local peaks
+        of a dense class head.
+
+        The seed logits [B, H, W, K] are sown as ``intermediates/seeds`` for the seed loss
+        (``losses.seed_loss``). A cell is a candidate when its best class score is the
+        maximum of its 3 x 3 neighbourhood, so one object does not take every query; the
+        selection itself carries no gradient, the gathered features do.
+
+        Returns:
+          ``(queries, cells)``: [B, Q, C] initial queries, LayerNorm(Dense(feature) +
+          Dense(sine code)), and int32 [B, Q] the selected cells (row * W + col).
+        """
+        cfg = self.config
+        b, h, w, c = f_proj.shape
+        seeds = self._seed_logits(f_proj)  # [B, H, W, K]
+        cells = peak_cells(jax.lax.stop_gradient(seeds.max(-1)), cfg.num_queries)  # [B, Q]
+        feat = jnp.take_along_axis(f_proj.reshape(b, h * w, c), cells[..., None], axis=1)
+        code = code_map(*positional_code(h, w, c), self.dtype).reshape(h * w, c)[cells]
+        t = Dense(c, dtype=self.dtype, name="query_content")(feat)
+        t = t + Dense(c, dtype=self.dtype, name="query_pos")(code)
+        return nn.LayerNorm(dtype=self.dtype, name="query_norm")(t), cells  # [B, Q, C], [B, Q]

@@ -61,5 +61,5 @@ class IndoorBEV(nn.Module):
             name="upsampler",
         )(stages, jnp.pad(bev, ((0, 0), (0, side - h), (0, side - w), (0, 0))))  # fmt: skip
         up = up[:, :h, :w]  # [B, H, W, C'] crop the padding
-        out = SimpleMaskHead(cfg.head, cfg.num_classes, dtype, name="head")(up)
+        out = SimpleMaskHead(cfg.head, cfg.num_classes, dtype, cfg.grid, name="head")(up)
         return Predictions(**out)
