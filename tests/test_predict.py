@@ -118,3 +118,14 @@ def test_bad_input_is_named(model_file, tmp_path):
     (tmp_path / "x.bin").write_bytes(b"\0" * 10)
     with pytest.raises(kitti.DatasetError, match=r"x\.bin: size 10 bytes"):
         P.predict(model_file, tmp_path / "x.bin", tmp_path / "o", verbose=False)
+
+
+def test_cli_predict_reports_bad_input_without_a_traceback(model_file, tmp_path, capsys):
+    (tmp_path / "x.bin").write_bytes(b"\0" * 10)
+    assert cli_main(["predict", str(model_file), str(tmp_path / "x.bin"), "--out",
+                     str(tmp_path / "o")]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert err.startswith("indoorbev predict: error:") and "x.bin: size 10 bytes" in err
+    assert cli_main(["predict", str(tmp_path / "none.msgpack"), str(tmp_path), "--out",
+                     str(tmp_path / "o")]) == 2  # fmt: skip
+    assert "none.msgpack" in capsys.readouterr().err

@@ -165,14 +165,18 @@ def run_ros2_detect(args: argparse.Namespace) -> int:
 def run_predict(args: argparse.Namespace) -> int:
     from indoorbev_jax.predict import predict
 
-    predict(
-        args.model,
-        args.input,
-        args.out,
-        topic=args.topic,
-        bag_out=args.bag_out,
-        pictures=not args.no_pictures,
-    )
+    try:
+        predict(
+            args.model,
+            args.input,
+            args.out,
+            topic=args.topic,
+            bag_out=args.bag_out,
+            pictures=not args.no_pictures,
+        )
+    except (OSError, ValueError) as e:  # bad model file, input or bag (rosbag.BagError)
+        print(f"indoorbev predict: error: {e}", file=sys.stderr)
+        return 2
     return 0
 
 
