@@ -219,3 +219,16 @@ def test_gt_database_holds_every_valid_object_of_its_batches(batch):
     assert db.classes.shape == (2 * n,)
     want = np.asarray(batch.targets.classes)[np.asarray(batch.targets.valid)]
     np.testing.assert_array_equal(db.classes, np.concatenate([want, want]))
+
+
+def test_box_mask_targets_apply_to_training_batches_of_any_source(data):
+    import dataclasses
+
+    boxed_cfg = dataclasses.replace(CFG, data=dataclasses.replace(CFG.data, mask_targets="box"))
+    train, val = T.make_sources(boxed_cfg, str(data), 0, False)
+    shaped, shaped_val = T.make_sources(CFG, str(data), 0, False)
+    want = T.box_targets(shaped(0), CFG.grid).targets
+    got = train(0).targets
+    np.testing.assert_array_equal(got.masks, want.masks)
+    np.testing.assert_array_equal(got.instance_ids, want.instance_ids)
+    np.testing.assert_array_equal(val[0].targets.masks, shaped_val[0].targets.masks)

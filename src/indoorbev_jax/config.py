@@ -105,9 +105,9 @@ class DataConfig:
     class_names: tuple[str, ...] = CLASS_NAMES
     # Extra label names accepted on read, as (name in file, canonical class name) pairs.
     class_map: tuple[tuple[str, str], ...] = ()
-    # Training footprint targets from the simulator: "shape" (true shape, the union of the
-    # object's primitives) or "box" (its labelled box rasterised). Evaluation always uses
-    # the true shape.
+    # Training footprint targets: "shape" (true shape: the simulator's union of the object's
+    # primitives, or a dataset's mask_2) or "box" (its labelled box rasterised). Validation
+    # and evaluation always use the true shape.
     mask_targets: str = "shape"
 
     def __post_init__(self):

@@ -235,8 +235,8 @@ def box_targets(batch: Batch, grid) -> Batch:
 def gt_database(source: Callable[[int], Batch], batches: int, grid) -> ObjectDatabase:
     """Object database for ground-truth sampling from the first ``batches`` training batches
     (``augment.gt_sampling > 0``)."""
-    parts = [build_object_database(source(i), grid) for i in range(batches)]
-    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
+    frames = jax.tree.map(lambda *xs: np.concatenate(xs), *[source(i) for i in range(batches)])
+    return build_object_database(frames, grid)  # one compile for all the frames
 
 
 class SimSource:
@@ -247,13 +247,7 @@ class SimSource:
         from indoorbev_sim import generate_batch
 
         self.key = key
-        boxes = split == "train" and config.data.mask_targets == "box"
-
-        def generate(k):
-            batch = generate_batch(k, config, split)
-            return box_targets(batch, config.grid) if boxes else batch
-
-        self._generate = jax.jit(generate)
+        self._generate = jax.jit(lambda k: generate_batch(k, config, split))
 
     def __call__(self, step: int) -> Batch:
         return self._generate(jax.random.fold_in(self.key, step))
@@ -473,12 +467,15 @@ def make_sources(config: Config, data: str | None, seed: int, skip_bad: bool):
         train = SimSource(config, jax.random.fold_in(key, 0))
         val_source = SimSource(config, jax.random.fold_in(key, 1), "val")
         val = [val_source(k) for k in range(t.eval_batches)]
-        return train, val
-    train = KittiSource(data, "train", config, seed, skip_bad)
-    from indoorbev_jax.data.dataset import KittiDataset
+    else:
+        from indoorbev_jax.data.dataset import KittiDataset
 
-    val_ds = KittiDataset(data, "val", config)
-    val = list(val_ds.batches(t.batch_size, drop_remainder=False))[: t.eval_batches]
+        train = KittiSource(data, "train", config, seed, skip_bad)
+        val_ds = KittiDataset(data, "val", config)
+        val = list(val_ds.batches(t.batch_size, drop_remainder=False))[: t.eval_batches]
+    if config.data.mask_targets == "box":  # training targets only; validation stays true shape
+        boxed = jax.jit(box_targets, static_argnums=1)
+        return (lambda step, shaped=train: boxed(shaped(step), config.grid)), val
     return train, val
 
 

@@ -394,7 +394,7 @@ class SimpleMaskHead(nn.Module):
             raise ValueError("SimpleMaskHead needs `grid` for query_init='select' / mask_prior")
         if needs_grid:
             xs, ys = cell_centers(self.grid)  # [W], [H] metres
-        anchor = jnp.zeros((b, cfg.num_queries, 3), self.dtype)
+        anchor = None
         if cfg.query_init == "select":
             t, cells = self._select_queries(f_proj)  # [B, Q, C], [B, Q]
             # Box centres are predicted as offsets from the selected cells.
@@ -425,7 +425,9 @@ class SimpleMaskHead(nn.Module):
             pixels = pixels + code_map(*positional_code(h, w, c), self.dtype)  # [H, W, C]
         masks = jnp.einsum("bkc,bcn->bkn", m, pixels.reshape(b, h * w, c).transpose(0, 2, 1))
         masks = masks.reshape(b, n_l, n_q, h, w).transpose(1, 0, 2, 3, 4)  # [L, B, Q, H, W]
-        pos = Dense(3, dtype=self.dtype, name="pos_head")(q) + anchor  # [L, B, Q, 3]
+        pos = Dense(3, dtype=self.dtype, name="pos_head")(q)  # [L, B, Q, 3]
+        if anchor is not None:
+            pos = pos + anchor
         if cfg.mask_prior:
             # log-prior -a_j |p - c_j|^2 around the query's own predicted centre c_j, so a
             # mask need not tell look-alike objects apart from features alone.
