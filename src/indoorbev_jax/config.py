@@ -531,8 +531,9 @@ class Config:
             ),
             # Skips give the 0.1 m masks the detail a 1.6 m stage-4 cell lacks; attending
             # to a 2 x 2 pooled memory cuts the CPU train step by a fifth.
-            # The mask prior: 4-frame overfitting dice 0.420 vs 0.603 without, at 150 steps;
-            # mask-pooled class features keep the class loss learning (docs/MODEL.md).
+            # The mask prior: 4-frame overfitting dice 0.420 vs 0.603 without, at 150 steps
+            # (pooled classes off); mask-pooled class features keep the class loss
+            # learning (docs/MODEL.md).
             head=HeadConfig(
                 hidden_dim=32,
                 num_heads=4,
