@@ -173,6 +173,13 @@ def main(argv=None):
         help="override a.b=v (on top of --set) for a second jax step timed interleaved with "
         "the first, e.g. the memory-lean settings against the plain ones",
     )
+    ap.add_argument(
+        "--settle",
+        type=float,
+        default=0.5,
+        help="seconds idle before each timed run: torch's OpenMP workers and XLA's thread pool "
+        "spin-wait after a step, and on 2 cores that spinning would be charged to the next side",
+    )
     a = ap.parse_args(argv)
 
     cfg = apply_overrides(Config.preset(a.preset), a.set)
@@ -208,6 +215,7 @@ def main(argv=None):
     times = {k: [] for k in runners}
     for _ in range(a.reps):  # interleaved: each rep runs every side once
         for k, run in runners.items():
+            time.sleep(a.settle)
             t0 = time.perf_counter()
             run()
             times[k].append(time.perf_counter() - t0)

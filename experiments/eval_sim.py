@@ -46,6 +46,16 @@ def evaluate_sim(config, params, split: str, frames: int, batch: int, seed: int,
     return evaluator.compute()
 
 
+def _probability(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a probability in [0, 1], got {text!r}")
+    return value
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", required=True, help="run directory or exported model file")
@@ -56,13 +66,16 @@ def main(argv=None) -> None:
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument(
         "--score-threshold",
-        type=float,
+        type=_probability,
         default=None,
         help="inference.score_threshold (default: the model's, 0.8 as in the paper)",
     )
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
-    config, params = load_model(args.model)
+    try:
+        config, params = load_model(args.model)
+    except (OSError, ValueError) as e:
+        p.exit(2, f"eval_sim: {e}\n")
     if args.score_threshold is not None:
         inference = dataclasses.replace(config.inference, score_threshold=args.score_threshold)
         config = dataclasses.replace(config, inference=inference)

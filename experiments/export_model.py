@@ -8,10 +8,12 @@ shipped one.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 
 import jax
 
+from indoorbev_jax.config import ConfigError
 from indoorbev_jax.predict import export_model, load_model
 from indoorbev_jax.train import load_params
 
@@ -21,15 +23,29 @@ def main(argv=None) -> None:
     p.add_argument("run", help="run directory (config.json + checkpoints)")
     p.add_argument("--out", required=True, help="model file to write (.msgpack)")
     p.add_argument("--which", default="best", choices=("best", "latest"))
+    p.add_argument(
+        "--score-threshold",
+        type=float,
+        default=None,
+        help="inference.score_threshold stored in the file (default: the run's); pick it on "
+        "the validation split (experiments/eval_sim.py --split val)",
+    )
     args = p.parse_args(argv)
     config, params = load_params(args.run, args.which)
+    if args.score_threshold is not None:
+        try:
+            inference = dataclasses.replace(config.inference, score_threshold=args.score_threshold)
+        except ConfigError as e:
+            p.error(str(e))
+        config = dataclasses.replace(config, inference=inference)
     path = export_model(params, config, args.out)
     count = sum(math.prod(x.shape) for x in jax.tree.leaves(params))
     _, back = load_model(path)  # the file must read back to the same parameters
     same = jax.tree.all(jax.tree.map(lambda a, b: bool((a == b).all()), params, back))
     if not same:
         raise SystemExit(f"{path}: parameters did not read back unchanged")
-    print(f"{args.run} ({args.which}, preset {config.name}, {count:,} parameters) -> {path} "
+    print(f"{args.run} ({args.which}, preset {config.name}, {count:,} parameters, score "
+          f"threshold {config.inference.score_threshold}) -> {path} "
           f"({path.stat().st_size / 2**20:.1f} MiB)")  # fmt: skip
 
 

@@ -32,6 +32,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--skip-bad-frames", action="store_true", help="skip malformed frames")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument(
+        "--init-from",
+        default=None,
+        metavar="MODEL",
+        help="start from a trained model's parameters (run directory or exported .msgpack); "
+        "fresh optimizer state, ignored when the workdir resumes",
+    )
+    p.add_argument(
         "--set",
         action="append",
         default=[],
@@ -76,6 +83,7 @@ def main(argv=None) -> None:
         data=args.data,
         skip_bad_frames=args.skip_bad_frames,
         progress=not args.no_progress,
+        init_from=args.init_from,
     )
 
 

@@ -1,6 +1,7 @@
 """Training: non-finite steps skipped, vmapped sweeps equal separate runs, sharded equals
 single-device, checkpoints fall back past a corrupt one, and kill -9 + rerun is bitwise."""
 
+import dataclasses
 import json
 import os
 import signal
@@ -232,3 +233,28 @@ def test_box_mask_targets_apply_to_training_batches_of_any_source(data):
     np.testing.assert_array_equal(got.masks, want.masks)
     np.testing.assert_array_equal(got.instance_ids, want.instance_ids)
     np.testing.assert_array_equal(val[0].targets.masks, shaped_val[0].targets.masks)
+
+
+def test_with_pretrained_loads_a_model_file_and_names_mismatches(tmp_path):
+    from indoorbev_jax.predict import export_model
+
+    trained = T.init_state(CFG, jax.random.key(7)).params
+    path = export_model(trained, CFG, tmp_path / "trained.msgpack")
+    state = T.init_state(CFG, jax.random.key(0))
+    moved = state.replace(opt_state=jax.tree.map(lambda x: x + 1, state.opt_state))
+    loaded = T.with_pretrained(moved, CFG, path)
+    for a, b in zip(jax.tree.leaves(loaded.params), jax.tree.leaves(trained), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    fresh = T.make_optimizer(CFG).init(loaded.params)
+    for a, b in zip(jax.tree.leaves(loaded.opt_state), jax.tree.leaves(fresh), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert int(loaded.step) == int(moved.step)
+
+    names = tuple(reversed(CFG.data.class_names))
+    renamed = dataclasses.replace(CFG, data=dataclasses.replace(CFG.data, class_names=names))
+    with pytest.raises(ValueError, match="data.class_names"):
+        T.with_pretrained(T.init_state(renamed, jax.random.key(0)), renamed, path)
+
+    wider = dataclasses.replace(CFG, head=dataclasses.replace(CFG.head, ffn_dim=64))
+    with pytest.raises(ValueError, match=r"trained.msgpack: parameter .* has shape"):
+        T.train_and_evaluate(wider, tmp_path / "run", data=str(tmp_path), init_from=path)

@@ -16,6 +16,7 @@ once (``experiments/sweep.py``).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -126,6 +127,43 @@ def init_state(config: Config, key: jax.Array) -> TrainState:
         )
 
     return init(key)
+
+
+def with_pretrained(state: TrainState, config: Config, source: str | os.PathLike) -> TrainState:
+    """``state`` with the parameters of a trained model (fresh optimizer state).
+
+    ``source`` is a run directory or an exported model file (``predict.load_model``). Its grid
+    and class names must equal the run's and its parameter tree must match name for name and
+    shape for shape; the error names the first difference.
+    """
+    from indoorbev_jax.predict import load_model
+
+    src_config, params = load_model(source)
+    for field in ("grid", "data.class_names"):
+        ours, theirs = config, src_config
+        for part in field.split("."):
+            ours, theirs = getattr(ours, part), getattr(theirs, part)
+        if ours != theirs:
+            raise ValueError(
+                f"{source}: config field '{field}' is {theirs!r}, the run has {ours!r}"
+            )
+    want = dict(jax.tree_util.tree_flatten_with_path(state.params)[0])
+    have = dict(jax.tree_util.tree_flatten_with_path(params)[0])
+    for path in sorted(want.keys() | have.keys(), key=jax.tree_util.keystr):
+        name = jax.tree_util.keystr(path)
+        if path not in have:
+            raise ValueError(f"{source}: parameter {name} is missing")
+        if path not in want:
+            raise ValueError(f"{source}: parameter {name} is not in the run's model")
+        if np.shape(have[path]) != want[path].shape:
+            raise ValueError(
+                f"{source}: parameter {name} has shape {np.shape(have[path])}, "
+                f"the run's model expects {want[path].shape}"
+            )
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(state.params)
+    loaded = [jnp.asarray(have[path], leaf.dtype) for path, leaf in leaves]
+    params = jax.tree_util.tree_unflatten(treedef, loaded)
+    return state.replace(params=params, opt_state=make_optimizer(config).init(params))
 
 
 def _all_finite(tree) -> jax.Array:
@@ -486,6 +524,7 @@ def train_and_evaluate(
     data: str | None = None,
     skip_bad_frames: bool = False,
     progress: bool = True,
+    init_from: str | os.PathLike | None = None,
 ) -> TrainState:
     """Trains ``config`` in ``workdir``, resuming from its latest readable checkpoint.
 
@@ -496,6 +535,9 @@ def train_and_evaluate(
         KITTI-style folder with ``train.txt`` and ``val.txt``.
       skip_bad_frames: with a folder, skip (and report) malformed frames instead of failing.
       progress: show a progress bar.
+      init_from: start from this trained model's parameters (run directory or exported
+        model file; ``with_pretrained``) instead of random ones. Only a fresh run uses it:
+        a resumed run continues from its own checkpoint. Recorded in ``init_from.json``.
 
     Returns:
       The final ``TrainState``.
@@ -522,6 +564,15 @@ def train_and_evaluate(
     if restored is not None:
         state = restored
         log.info("resumed from step %d", int(state.step))
+    elif init_from is not None:
+        state = with_pretrained(state, config, init_from)
+        record = {"init_from": str(Path(init_from).resolve())}
+        if Path(init_from).is_file():
+            record["sha256"] = hashlib.sha256(Path(init_from).read_bytes()).hexdigest()
+        tmp = workdir / "init_from.tmp"
+        tmp.write_text(json.dumps(record, indent=2) + "\n")
+        os.replace(tmp, workdir / "init_from.json")
+        log.info("parameters from %s", init_from)
     start = int(state.step)
     metrics_log = MetricsLog(workdir, start)
     state = replicate(state, mesh)
