@@ -145,6 +145,13 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--sets", default="mid360 frame,grid 360x64,random 1M")
+    ap.add_argument(
+        "--settle",
+        type=float,
+        default=0.3,
+        help="seconds idle before each timed run, so that one backend's spin-waiting worker "
+        "threads (Taichi, XLA) are not charged to the next",
+    )
     args = ap.parse_args()
 
     m = mujoco.MjModel.from_xml_string(room_xml())
@@ -176,6 +183,7 @@ def main():
         times = {k: [] for k in backends}
         for _ in range(args.repeats):
             for k, fn in backends.items():
+                time.sleep(args.settle)
                 block = jax.block_until_ready if k == "ours" else (lambda x: x)
                 times[k].append(median_time(fn, block))
         print(f"\n== {name}: {len(dirs)} rays (ours: first call incl. compile {first:.2f} s)")
