@@ -21,6 +21,7 @@ from pathlib import Path
 
 import jax
 
+from indoorbev_jax.config import ConfigError
 from indoorbev_jax.evaluate import to_json
 from indoorbev_jax.metrics import Evaluator, format_table
 from indoorbev_jax.predict import load_model
@@ -46,16 +47,6 @@ def evaluate_sim(config, params, split: str, frames: int, batch: int, seed: int,
     return evaluator.compute()
 
 
-def _probability(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a probability in [0, 1], got {text!r}")
-    return value
-
-
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", required=True, help="run directory or exported model file")
@@ -66,7 +57,7 @@ def main(argv=None) -> None:
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument(
         "--score-threshold",
-        type=_probability,
+        type=float,
         default=None,
         help="inference.score_threshold (default: the model's, 0.8 as in the paper)",
     )
@@ -77,7 +68,10 @@ def main(argv=None) -> None:
     except (OSError, ValueError) as e:
         p.exit(2, f"eval_sim: {e}\n")
     if args.score_threshold is not None:
-        inference = dataclasses.replace(config.inference, score_threshold=args.score_threshold)
+        try:  # InferenceConfig checks the range
+            inference = dataclasses.replace(config.inference, score_threshold=args.score_threshold)
+        except ConfigError as e:
+            p.error(str(e))
         config = dataclasses.replace(config, inference=inference)
     start = time.perf_counter()
     results = evaluate_sim(

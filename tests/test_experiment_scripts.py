@@ -35,3 +35,23 @@ def test_eval_sim_rejects_a_frame_count_the_batch_does_not_divide():
     eval_sim = _script("eval_sim")
     with pytest.raises(ValueError, match="--frames 10 must be a multiple of --batch 8"):
         eval_sim.evaluate_sim(Config.tiny(), None, "test", 10, 8, 0, progress=False)
+
+
+def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, capsys):
+    import numpy as np
+
+    from indoorbev_jax.predict import export_model
+
+    eval_sim = _script("eval_sim")
+    missing = tmp_path / "missing.msgpack"
+    with pytest.raises(SystemExit) as exit_info:
+        eval_sim.main(["--model", str(missing)])
+    assert exit_info.value.code == 2
+    assert f"{missing}: no such model file" in capsys.readouterr().err
+    # The threshold is checked before the parameters are used, so any tree will do.
+    path = export_model({"params": {"w": np.zeros(1)}}, Config.tiny(), tmp_path / "m.msgpack")
+    for bad in ("2", "nan"):
+        with pytest.raises(SystemExit) as exit_info:
+            eval_sim.main(["--model", str(path), "--score-threshold", bad])
+        assert exit_info.value.code == 2
+        assert "inference.score_threshold': must lie in [0, 1]" in capsys.readouterr().err

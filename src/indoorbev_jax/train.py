@@ -147,7 +147,8 @@ def with_pretrained(state: TrainState, config: Config, source: str | os.PathLike
             raise ValueError(
                 f"{source}: config field '{field}' is {theirs!r}, the run has {ours!r}"
             )
-    want = dict(jax.tree_util.tree_flatten_with_path(state.params)[0])
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(state.params)
+    want = dict(leaves)
     have = dict(jax.tree_util.tree_flatten_with_path(params)[0])
     for path in sorted(want.keys() | have.keys(), key=jax.tree_util.keystr):
         name = jax.tree_util.keystr(path)
@@ -160,7 +161,6 @@ def with_pretrained(state: TrainState, config: Config, source: str | os.PathLike
                 f"{source}: parameter {name} has shape {np.shape(have[path])}, "
                 f"the run's model expects {want[path].shape}"
             )
-    leaves, treedef = jax.tree_util.tree_flatten_with_path(state.params)
     loaded = [jnp.asarray(have[path], leaf.dtype) for path, leaf in leaves]
     params = jax.tree_util.tree_unflatten(treedef, loaded)
     return state.replace(params=params, opt_state=make_optimizer(config).init(params))
