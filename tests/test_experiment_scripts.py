@@ -55,3 +55,22 @@ def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, caps
             eval_sim.main(["--model", str(path), "--score-threshold", bad])
         assert exit_info.value.code == 2
         assert "inference.score_threshold': must lie in [0, 1]" in capsys.readouterr().err
+
+
+def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tmp_path, capsys):
+    import numpy as np
+
+    from indoorbev_jax.predict import load_model
+
+    export = _script("export_model")
+    params = {"params": {"w": np.arange(3, dtype=np.float32)}}
+    export.load_params = lambda run, which: (Config.tiny(), params)  # a run's best checkpoint
+    out = tmp_path / "m.msgpack"
+    with pytest.raises(SystemExit) as exit_info:
+        export.main(["run", "--out", str(out), "--score-threshold", "1.5"])
+    assert exit_info.value.code == 2 and not out.exists()
+    assert "inference.score_threshold': must lie in [0, 1]" in capsys.readouterr().err
+    export.main(["run", "--out", str(out), "--score-threshold", "0.3"])
+    config, back = load_model(out)
+    assert config.inference.score_threshold == 0.3
+    np.testing.assert_array_equal(back["params"]["w"], params["params"]["w"])
