@@ -3,7 +3,11 @@
 Scene: a 10 x 10 m room (floor plane, 4 wall boxes) with 60 furniture primitives of every
 type; sensor at the room centre, 0.5 m up. Patterns: one MID-360-like frame (20k rays), a
 360 x 64 grid, 1M random rays. Backends, all on the same scene and rays, interleaved:
-  * ours      - cast_rays inside jax.jit (Warp kernels on the CPU);
+  * ours      - cast_rays inside jax.jit (Warp kernels on the CPU), the jitted function taking
+    the MJX Model and Data (flattening their ~200 leaves costs ~0.7-1.8 ms per call);
+  * ours, poses - the same, the jitted function taking only the geom poses that change
+    between frames (geom_xpos, geom_xmat), as a simulation loop inside jit sees them;
+  * ours, 1 thread - as "ours" with cpu_threads=1 (one Warp launch per kernel);
   * mj_multiRay on two threads (the binding releases the GIL; rays split in halves);
   * mujoco-lidar 0.3.x backends "warp" (BVH) and "taichi", if installed. They are benchmark
     only: ``.venv/bin/pip install "mujoco-lidar[taichi]==0.3.5"`` (pulls torch).
@@ -16,6 +20,7 @@ Usage: JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_lidar.py [--repeats 
 from __future__ import annotations
 
 import argparse
+import functools
 import threading
 import time
 
@@ -141,6 +146,31 @@ def median_time(fn, block=lambda x: x):
     return time.perf_counter() - t
 
 
+def thread_sweep(mx, dx, origin, sizes, args):
+    from indoorbev_sim import _lidar_kernels
+
+    _lidar_kernels.MIN_ITEMS_PER_THREAD = 1
+    geo = jax.jit(lidar.scene_geometry)(mx, dx)
+    rays = ray_sets()["random 1M"]
+    fns = {
+        t: jax.jit(lambda g, v, t=t: lidar.cast_geometry(g, origin, v, CUTOFF, cpu_threads=t))
+        for t in (1, 2)
+    }
+    for n in sizes:
+        dirs = jnp.asarray(rays[:n])
+        times = {t: [] for t in fns}
+        for fn in fns.values():
+            jax.block_until_ready(fn(geo, dirs))
+        for _ in range(args.repeats):
+            for t, fn in fns.items():
+                time.sleep(args.settle)
+                times[t].append(
+                    median_time(functools.partial(fn, geo, dirs), jax.block_until_ready)
+                )
+        one, two = (float(np.median(times[t])) * 1e3 for t in (1, 2))
+        print(f"{n:8d} rays: 1 thread {one:8.2f} ms, 2 threads {two:8.2f} ms ({one / two:.2f}x)")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=7)
@@ -152,6 +182,13 @@ def main():
         help="seconds idle before each timed run, so that one backend's spin-waiting worker "
         "threads (Taichi, XLA) are not charged to the next",
     )
+    ap.add_argument(
+        "--thread-sizes",
+        default="",
+        help="comma-separated ray counts: instead of the backends, time ours on that many of "
+        "the random rays with cpu_threads 1 vs 2, both forced to split (how the one-thread "
+        "threshold in _lidar_kernels.MIN_ITEMS_PER_THREAD was chosen)",
+    )
     args = ap.parse_args()
 
     m = mujoco.MjModel.from_xml_string(room_xml())
@@ -161,13 +198,24 @@ def main():
     print(f"scene: {m.ngeom} geoms; {jax.device_count()} JAX device(s); repeats {args.repeats}")
     origin = jnp.asarray(SENSOR, jnp.float32)
     ours_fn = jax.jit(lambda mx, dx, v: lidar.cast_rays(mx, dx, origin, v, CUTOFF))
+    ours_1t = jax.jit(lambda mx, dx, v: lidar.cast_rays(mx, dx, origin, v, CUTOFF, cpu_threads=1))
+    ours_poses = jax.jit(
+        lambda xpos, xmat, v: lidar.cast_rays(
+            mx, dx.replace(geom_xpos=xpos, geom_xmat=xmat), origin, v, CUTOFF
+        )
+    )
 
+    if args.thread_sizes:
+        thread_sweep(mx, dx, origin, [int(n) for n in args.thread_sizes.split(",")], args)
+        return
     for name, dirs in ray_sets().items():
         if name not in args.sets.split(","):
             continue
         dirs_j = jnp.asarray(dirs)
         backends = {
             "ours": lambda dirs_j=dirs_j: ours_fn(mx, dx, dirs_j),
+            "ours, poses": lambda dirs_j=dirs_j: ours_poses(dx.geom_xpos, dx.geom_xmat, dirs_j),
+            "ours, 1 thread": lambda dirs_j=dirs_j: ours_1t(mx, dx, dirs_j),
             "mj_multiRay x2 threads": MultiRay2(m, d, dirs),
         }
         ml, notes = mujoco_lidar_backends(m, d, dirs)
@@ -175,6 +223,9 @@ def main():
         t0 = time.perf_counter()
         ours = jax.block_until_ready(backends["ours"]())
         first = time.perf_counter() - t0
+        for k in ("ours, poses", "ours, 1 thread"):
+            same = jax.block_until_ready(backends[k]())
+            assert all(np.array_equal(a, b) for a, b in zip(same, ours, strict=True)), k
         ref_d, ref_g = backends["mj_multiRay x2 threads"]()
         ref_d = np.where((ref_d < 0) | (ref_d > CUTOFF), -1.0, ref_d)
         ok = (np.abs(np.asarray(ours[0]) - ref_d) <= 1e-4) & (
@@ -184,7 +235,7 @@ def main():
         for _ in range(args.repeats):
             for k, fn in backends.items():
                 time.sleep(args.settle)
-                block = jax.block_until_ready if k == "ours" else (lambda x: x)
+                block = jax.block_until_ready if k.startswith("ours") else (lambda x: x)
                 times[k].append(median_time(fn, block))
         print(f"\n== {name}: {len(dirs)} rays (ours: first call incl. compile {first:.2f} s)")
         for note in notes:
@@ -192,8 +243,11 @@ def main():
         med = {k: float(np.median(v)) for k, v in times.items()}
         for k, t in med.items():
             print(f"  {k:28s} {t * 1e3:9.2f} ms  {len(dirs) / t / 1e6:8.2f} M rays/s")
-        best_other = min(t for k, t in med.items() if k != "ours")
-        print(f"  speed-up of ours over the best other backend: {best_other / med['ours']:.2f}x")
+        best_other = min(t for k, t in med.items() if not k.startswith("ours"))
+        print(
+            f"  speed-up over the best other backend: ours {best_other / med['ours']:.2f}x, "
+            f"ours with poses {best_other / med['ours, poses']:.2f}x"
+        )
         print(f"  agreement with mj_multiRay (1e-4 m, hit/miss, geom): {ok.mean() * 100:.4f} %")
 
 

@@ -21,6 +21,9 @@ launch per frame, which is the whole "refit" a moving mocap body needs.
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
 import warp as wp
 
 wp.config.quiet = True
@@ -471,3 +474,121 @@ def cast_binned(
     else:
         dist_out[s, r] = best
     geom_out[s, r] = best_g
+
+
+# ----------------------------------------------------------------------------- CPU threads
+# A Warp CPU launch runs on one thread, and XLA runs FFI calls one after another, so on the
+# CPU the bridge (``lidar.py``) calls the functions below through ``wp.jax_callable``: each
+# deals the launch's second axis (rays, or cube-map cells) out round-robin over ``threads``
+# threads (neighbouring rays cost about the same, so the shares balance). The kernels release
+# the GIL while they run; results are identical to one launch.
+
+# Below this many rays (or cells) per thread the launch stays on one thread: waking an idle
+# second core cost up to ~5 ms on the 2-core VMs we measured (docs/BENCHMARKS.md, "Lidar").
+MIN_ITEMS_PER_THREAD = 65536
+_pool: ThreadPoolExecutor | None = None
+_pool_workers = 0
+_pool_lock = threading.Lock()
+
+
+def _executor(workers: int) -> ThreadPoolExecutor:
+    global _pool, _pool_workers
+    with _pool_lock:
+        if _pool_workers < workers:
+            if _pool is not None:
+                _pool.shutdown(wait=False)
+            _pool = ThreadPoolExecutor(workers, thread_name_prefix="indoorbev-lidar")
+            _pool_workers = workers
+        return _pool
+
+
+def launch_split(kernel, inputs: list, outputs: list, split: set[int], threads: int) -> None:
+    """``wp.launch`` over dim (B, N) from ``outputs[0].shape``, N shared by up to ``threads``.
+
+    ``split`` names the inputs indexed by the second launch axis; every output is.
+    """
+    nscene, n = outputs[0].shape[:2]
+    threads = max(1, min(int(threads), (nscene * n) // MIN_ITEMS_PER_THREAD))
+    device = outputs[0].device
+
+    def share(t: int) -> None:
+        ins = [x[:, t::threads] if i in split else x for i, x in enumerate(inputs)]
+        outs = [x[:, t::threads] for x in outputs]
+        wp.launch(kernel, dim=outs[0].shape[:2], inputs=ins, outputs=outs, device=device)
+
+    if threads == 1 or not device.is_cpu:
+        wp.launch(kernel, dim=(nscene, n), inputs=inputs, outputs=outputs, device=device)
+        return
+    pending = [_executor(threads - 1).submit(share, t) for t in range(1, threads)]
+    share(0)
+    for p in pending:
+        p.result()
+
+
+def cast_brute_threads(
+    geom_type: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_pos: wp.array2d(dtype=wp.vec3),
+    geom_mat: wp.array2d(dtype=wp.mat33),
+    geom_rbound: wp.array2d(dtype=float),
+    geom_enabled: wp.array2d(dtype=int),
+    dirs: wp.array2d(dtype=wp.vec3),
+    origin: wp.array(dtype=wp.vec3),
+    max_range: wp.array(dtype=float),
+    threads: int,
+    dist_out: wp.array2d(dtype=float),
+    geom_out: wp.array2d(dtype=int),
+):
+    """``cast_brute`` with the rays shared over ``threads`` CPU threads."""
+    inputs = [geom_type, geom_size, geom_pos, geom_mat, geom_rbound, geom_enabled, dirs]
+    launch_split(cast_brute, inputs + [origin, max_range], [dist_out, geom_out], {6}, threads)
+
+
+def build_bins_threads(
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_pos: wp.array2d(dtype=wp.vec3),
+    geom_mat: wp.array2d(dtype=wp.mat33),
+    geom_ext: wp.array2d(dtype=wp.vec3),
+    geom_rbound: wp.array2d(dtype=float),
+    geom_enabled: wp.array2d(dtype=int),
+    geom_front: wp.array2d(dtype=int),
+    origin: wp.array(dtype=wp.vec3),
+    bin_axis: wp.array2d(dtype=wp.vec3),
+    bin_cos: wp.array2d(dtype=float),
+    bin_sin: wp.array2d(dtype=float),
+    threads: int,
+    cand_geom_out: wp.array3d(dtype=int),
+    cand_t_out: wp.array3d(dtype=float),
+    cand_n_out: wp.array2d(dtype=int),
+    cand_drop_out: wp.array2d(dtype=float),
+):
+    """``build_bins`` with the cells shared over ``threads`` CPU threads."""
+    inputs = [geom_size, geom_pos, geom_mat, geom_ext, geom_rbound, geom_enabled, geom_front]
+    outputs = [cand_geom_out, cand_t_out, cand_n_out, cand_drop_out]
+    launch_split(
+        build_bins, inputs + [origin, bin_axis, bin_cos, bin_sin], outputs, {8, 9, 10}, threads
+    )
+
+
+def cast_binned_threads(
+    geom_type: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_pos: wp.array2d(dtype=wp.vec3),
+    geom_mat: wp.array2d(dtype=wp.mat33),
+    geom_enabled: wp.array2d(dtype=int),
+    cand_geom: wp.array3d(dtype=int),
+    cand_t: wp.array3d(dtype=float),
+    cand_n: wp.array2d(dtype=int),
+    cand_drop: wp.array2d(dtype=float),
+    dirs: wp.array2d(dtype=wp.vec3),
+    origin: wp.array(dtype=wp.vec3),
+    max_range: wp.array(dtype=float),
+    cells_per_edge: int,
+    threads: int,
+    dist_out: wp.array2d(dtype=float),
+    geom_out: wp.array2d(dtype=int),
+):
+    """``cast_binned`` with the rays shared over ``threads`` CPU threads."""
+    inputs = [geom_type, geom_size, geom_pos, geom_mat, geom_enabled]
+    inputs += [cand_geom, cand_t, cand_n, cand_drop, dirs, origin, max_range, cells_per_edge]
+    launch_split(cast_binned, inputs, [dist_out, geom_out], {9}, threads)

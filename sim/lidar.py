@@ -15,6 +15,7 @@ Example:
 from __future__ import annotations
 
 import functools
+import os
 
 import jax
 import jax.numpy as jnp
@@ -256,16 +257,58 @@ def default_cells_per_edge(num_rays: int) -> int:
 
 @functools.cache
 def _ffi(name: str):
+    """One Warp launch per call (CUDA, or a CPU caster told to use one thread)."""
     kernel = {"brute": K.cast_brute, "build": K.build_bins, "binned": K.cast_binned}[name]
     nout = {"brute": 2, "build": 4, "binned": 2}[name]
     return wp.jax_kernel(kernel, num_outputs=nout)
 
 
-def _cast_impl(geo: SceneGeometry, dirs, origin, max_range, *, method, cells, capacity):
+@functools.cache
+def _ffi_threads(name: str):
+    """The launch shared over CPU threads (``_lidar_kernels.launch_split``)."""
+    func = {
+        "brute": K.cast_brute_threads,
+        "build": K.build_bins_threads,
+        "binned": K.cast_binned_threads,
+    }[name]
+    nout = {"brute": 2, "build": 4, "binned": 2}[name]
+    return wp.jax_callable(func, num_outputs=nout, vmap_method=None)
+
+
+def default_cpu_threads() -> int:
+    """CPU threads a caster uses by default: the cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _launch(name: str, *arrays, static=(), launch_dims, output_dims=None, threads: int = 1):
+    """A kernel launch that shares its second axis over ``threads`` threads on the CPU.
+
+    ``static``: the kernel's trailing scalar arguments (Python values, not traced).
+    """
+    if output_dims is None:
+        output_dims = launch_dims
+
+    def one_launch(*a):
+        return _ffi(name)(*a, *static, launch_dims=launch_dims, output_dims=output_dims)
+
+    if threads <= 1:
+        return one_launch(*arrays)
+
+    def on_threads(*a):
+        return _ffi_threads(name)(*a, *static, threads, output_dims=output_dims)
+
+    return jax.lax.platform_dependent(*arrays, cpu=on_threads, default=one_launch)
+
+
+def _cast_impl(geo: SceneGeometry, dirs, origin, max_range, *, method, cells, capacity, threads):
     """All inputs batched over scenes: dirs [B, R, 3], origin [B, 3], max_range [B]."""
     nscene, nray = dirs.shape[:2]
     if method == "brute":
-        return _ffi("brute")(
+        return _launch(
+            "brute",
             geo.geom_type,
             geo.size,
             geo.pos,
@@ -276,6 +319,7 @@ def _cast_impl(geo: SceneGeometry, dirs, origin, max_range, *, method, cells, ca
             origin,
             max_range,
             launch_dims=(nscene, nray),
+            threads=threads,
         )
     axis, cosb, sinb = _cube_cells(cells)
     ncell = axis.shape[0]
@@ -283,7 +327,8 @@ def _cast_impl(geo: SceneGeometry, dirs, origin, max_range, *, method, cells, ca
     def bcast(x):  # shared cell table -> [B, ...]
         return jnp.broadcast_to(jnp.asarray(x), (nscene,) + x.shape)
 
-    cand_geom, cand_t, cand_n, cand_drop = _ffi("build")(
+    cand_geom, cand_t, cand_n, cand_drop = _launch(
+        "build",
         geo.size,
         geo.pos,
         geo.mat,
@@ -302,8 +347,10 @@ def _cast_impl(geo: SceneGeometry, dirs, origin, max_range, *, method, cells, ca
             "cand_n_out": (nscene, ncell),
             "cand_drop_out": (nscene, ncell),
         },
+        threads=threads,
     )
-    return _ffi("binned")(
+    return _launch(
+        "binned",
         geo.geom_type,
         geo.size,
         geo.pos,
@@ -316,19 +363,27 @@ def _cast_impl(geo: SceneGeometry, dirs, origin, max_range, *, method, cells, ca
         dirs,
         origin,
         max_range,
-        cells,
+        static=(cells,),
         launch_dims=(nscene, nray),
+        threads=threads,
     )
 
 
 @functools.cache
-def _batched_caster(method: str, cells: int, capacity: int):
+def _batched_caster(method: str, cells: int, capacity: int, threads: int):
     """A scene-batched caster whose vmap folds the mapped axis into the scene axis."""
 
     @jax.custom_batching.custom_vmap
     def cast(geo, dirs, origin, max_range):
         dist, gid = _cast_impl(
-            geo, dirs, origin, max_range, method=method, cells=cells, capacity=capacity
+            geo,
+            dirs,
+            origin,
+            max_range,
+            method=method,
+            cells=cells,
+            capacity=capacity,
+            threads=threads,
         )
         return dist, gid
 
@@ -357,6 +412,7 @@ def cast_geometry(
     method: str = "binned",
     cells_per_edge: int | None = None,
     capacity: int = DEFAULT_CAPACITY,
+    cpu_threads: int | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """``cast_rays`` on a prepared ``SceneGeometry`` (B scenes); shapes as ``cast_rays``."""
     nscene = geo.pos.shape[0]
@@ -374,7 +430,10 @@ def cast_geometry(
     origin = jnp.broadcast_to(origins.reshape(-1, 3), (nscene, 3))
     mr = jnp.broadcast_to(jnp.asarray(max_range, jnp.float32).reshape(-1), (nscene,))
     cells = default_cells_per_edge(nray) if cells_per_edge is None else int(cells_per_edge)
-    dist, gid = _batched_caster(method, cells, int(capacity))(geo, dirs, origin, mr)
+    threads = default_cpu_threads() if cpu_threads is None else int(cpu_threads)
+    if threads < 1:
+        raise ValueError(f"cpu_threads must be >= 1, got {cpu_threads}")
+    dist, gid = _batched_caster(method, cells, int(capacity), threads)(geo, dirs, origin, mr)
     if single and nscene == 1:
         return dist[0], gid[0]
     return dist, gid
@@ -394,6 +453,7 @@ def cast_rays(
     method: str = "binned",
     cells_per_edge: int | None = None,
     capacity: int = DEFAULT_CAPACITY,
+    cpu_threads: int | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """Casts rays from one origin per scene against MJX primitives, like ``mj_ray``.
 
@@ -414,6 +474,8 @@ def cast_rays(
       method: "binned" (cube-map culling, default) or "brute" (every geom per ray).
       cells_per_edge: cube-map resolution (static); default from R.
       capacity: candidate list length per cell (static); overflowing cells stay exact.
+      cpu_threads: threads sharing each launch on the CPU (static); None: every core this
+        process may use. Results do not depend on it; on CUDA it is ignored.
 
     Returns:
       distance: float32 [R] or [B, R], along the ray (in units of |direction|), -1 on a miss.
@@ -435,6 +497,7 @@ def cast_rays(
         method=method,
         cells_per_edge=cells_per_edge,
         capacity=capacity,
+        cpu_threads=cpu_threads,
     )
 
 

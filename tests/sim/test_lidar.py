@@ -120,6 +120,56 @@ def test_batched_and_vmapped_scenes_match_single(scenes):
         np.testing.assert_allclose(np.asarray(dist_v[b]), np.asarray(dist_1), atol=1e-5)
 
 
+def test_cpu_threads_split_launches_without_changing_results(scenes, monkeypatch):
+    """Rays and cells dealt over 1-3 CPU threads: the same bits as one launch, and mj_ray's."""
+    from indoorbev_sim import _lidar_kernels as K
+
+    monkeypatch.setattr(K, "MIN_ITEMS_PER_THREAD", 1)  # split even these few rays
+    launches = []
+    real_launch = K.wp.launch
+
+    def counting_launch(kernel, dim, **kw):
+        launches.append((kernel.key, tuple(dim)))
+        return real_launch(kernel, dim, **kw)
+
+    monkeypatch.setattr(K.wp, "launch", counting_launch)
+    rng = np.random.default_rng(7)
+    m, d, mx, _ = scenes[0]
+    datas = []
+    for _ in range(2):
+        d2 = mujoco.MjData(m)
+        mujoco.mj_forward(m, d2)
+        d2.geom_xpos[:] += rng.uniform(-0.3, 0.3, d2.geom_xpos.shape)
+        datas.append(d2)
+    dx_b = jax.tree.map(lambda *x: jnp.stack(x), *[mjx.put_data(m, dd) for dd in datas])
+    origins = rng.uniform(-2, 2, (2, 3)).astype(np.float32)
+    dirs = unit_rays(rng, 4001)  # not a multiple of the thread counts
+    for method in ("binned", "brute"):
+        out = {}
+        for threads in (1, 2, 3):
+            launches.clear()
+            fn = jax.jit(
+                lambda dx, o, v, t=threads, meth=method: lidar.cast_rays(
+                    mx, dx, o, v, MAX_RANGE, method=meth, cpu_threads=t
+                )
+            )
+            out[threads] = [np.asarray(x) for x in fn(dx_b, origins, jnp.asarray(dirs))]
+            kernel = "cast_" + method
+            shares = [n for key, (b, n) in launches if key == kernel and b == 2]
+            # One thread is the plain FFI kernel; more deal the rays out round-robin.
+            want = [len(range(t, 4001, threads)) for t in range(threads)] if threads > 1 else []
+            assert sorted(shares) == sorted(want)
+        for threads in (2, 3):
+            np.testing.assert_array_equal(out[threads][0], out[1][0])
+            np.testing.assert_array_equal(out[threads][1], out[1][1])
+        for b in range(2):
+            ref_d, ref_g = mj_ray_reference(m, datas[b], origins[b].astype(np.float64), dirs)
+            ok = (np.abs(out[3][0][b] - ref_d) <= 1e-4) & (out[3][1][b] == ref_g)
+            assert ok.mean() >= 0.9999
+    with pytest.raises(ValueError, match="cpu_threads"):
+        lidar.cast_rays(mx, mjx.put_data(m, d), origins[0], dirs, MAX_RANGE, cpu_threads=0)
+
+
 def test_filters_max_range_and_plane_conventions():
     """geomgroup / flg_static / bodyexclude / invisible geoms / max_range follow mj_ray."""
     xml = """<mujoco><default><geom contype="0" conaffinity="0"/></default><worldbody>
