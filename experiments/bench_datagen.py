@@ -7,6 +7,8 @@ one scene), MuJoCo ``mj_multiRay`` for the scan and the visibility rays, numpy f
 counts and filtering (``generate.reference_frame``).
 
 Runs are interleaved (ours, reference, ours, ...) and the median per-frame time is reported.
+A third row times the same compiled program with every Warp launch kept on one CPU thread
+(``_lidar_kernels.MIN_ITEMS_PER_THREAD`` raised for that run; it is read at run time).
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_datagen.py --preset small --batch 8
 """
@@ -19,7 +21,7 @@ import time
 
 import jax
 import numpy as np
-from indoorbev_sim import generate
+from indoorbev_sim import _lidar_kernels, generate
 
 from indoorbev_jax.config import Config
 
@@ -47,12 +49,17 @@ def main() -> None:
                              np.asarray(pattern.frame(k).directions, np.float64), rng)  # fmt: skip
     compile_ref = time.perf_counter() - t0
 
-    ours_s, ref_s = [], []
+    ours_s, ours1_s, ref_s = [], [], []
+    split_at = _lidar_kernels.MIN_ITEMS_PER_THREAD
     for r in range(args.repeats):
-        t0 = time.perf_counter()
-        batch, info = ours(jax.random.key(100 + r))
-        jax.block_until_ready(batch)
-        ours_s.append((time.perf_counter() - t0) / b)
+        # The two "ours" rows swap places each repeat: the first after the single-threaded
+        # reference finds the second core asleep.
+        for one_thread in (False, True) if r % 2 == 0 else (True, False):
+            _lidar_kernels.MIN_ITEMS_PER_THREAD = 1 << 62 if one_thread else split_at
+            t0 = time.perf_counter()
+            jax.block_until_ready(ours(jax.random.key(100 + r)))
+            (ours1_s if one_thread else ours_s).append((time.perf_counter() - t0) / b)
+        _lidar_kernels.MIN_ITEMS_PER_THREAD = split_at
         t0 = time.perf_counter()
         for f in range(args.ref_frames):
             scene, t, k, _ = one(jax.random.key(1000 * r + f))
@@ -61,6 +68,7 @@ def main() -> None:
         ref_s.append((time.perf_counter() - t0) / args.ref_frames)
 
     o, s = statistics.median(ours_s), statistics.median(ref_s)
+    o1 = statistics.median(ours1_s)
     geoms = generate.scenes_mod.template_for(cfg).num_geoms
     print(
         f"device: {jax.devices()[0].platform}, preset {cfg.name}: grid {cfg.grid.shape}, "
@@ -68,6 +76,7 @@ def main() -> None:
     )
     print(f"compile/warm-up: ours {compile_ours:.1f} s, reference {compile_ref:.1f} s")
     print(f"ours (batched, B={b}):        {1 / o:8.2f} frames/s  (median {o * 1e3:.1f} ms/frame)")
+    print(f"ours, launches on 1 thread: {1 / o1:8.2f} frames/s  (median {o1 * 1e3:.1f} ms/frame)")
     print(f"reference (sequential):     {1 / s:8.2f} frames/s  (median {s * 1e3:.1f} ms/frame)")
     print(
         f"speed-up: {s / o:.2f}x  (runs: ours {[f'{x * 1e3:.0f}' for x in ours_s]} ms, "
