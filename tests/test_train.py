@@ -2,6 +2,7 @@
 single-device, checkpoints fall back past a corrupt one, and kill -9 + rerun is bitwise."""
 
 import dataclasses
+import hashlib
 import json
 import os
 import signal
@@ -154,26 +155,39 @@ def test_sharded_step_equals_single_device(data, tmp_path):
     assert "SHARDED_OK" in out.stdout, out.stderr[-3000:]
 
 
-def _train_cmd(data, workdir):
+def _train_cmd(data, workdir, init_from):
     return [
         sys.executable, str(REPO / "experiments" / "train.py"), "--preset", "tiny",
         "--workdir", str(workdir), "--data", str(data), "--steps", "6",
         "--checkpoint-every", "2", "--eval-every", "6", "--no-progress",
+        "--init-from", str(init_from),
     ]  # fmt: skip
 
 
 def test_kill_and_rerun_resumes_bitwise(data, tmp_path):
+    """A run started from a trained model (--init-from), killed after its step-2 checkpoint
+    and rerun, ends bitwise equal to an uninterrupted one: the rerun resumes from its own
+    checkpoint instead of loading the model again."""
+    from indoorbev_jax.predict import export_model
+
+    pretrained = export_model(
+        T.init_state(CFG, jax.random.key(3)).params, CFG, tmp_path / "pretrained.msgpack"
+    )
     env = _env(tmp_path / "cache")
     full, killed = tmp_path / "full", tmp_path / "killed"
-    subprocess.run(_train_cmd(data, full), check=True, env=env, timeout=900)
-    proc = subprocess.Popen(_train_cmd(data, killed), env=env, stderr=subprocess.DEVNULL)
+    subprocess.run(_train_cmd(data, full, pretrained), check=True, env=env, timeout=900)
+    proc = subprocess.Popen(
+        _train_cmd(data, killed, pretrained), env=env, stderr=subprocess.DEVNULL
+    )
     deadline = time.time() + 600
     while time.time() < deadline and not (killed / "checkpoints" / "2").is_dir():
         time.sleep(0.2)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     assert (killed / "checkpoints" / "2").is_dir()
-    subprocess.run(_train_cmd(data, killed), check=True, env=env, timeout=900)
+    subprocess.run(_train_cmd(data, killed, pretrained), check=True, env=env, timeout=900)
+    record = json.loads((killed / "init_from.json").read_text())
+    assert record["sha256"] == hashlib.sha256(Path(pretrained).read_bytes()).hexdigest()
 
     template = T.init_state(CFG, jax.random.key(0))
     a = T.Checkpoints(full, 2).restore(template)
