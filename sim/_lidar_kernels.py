@@ -483,9 +483,11 @@ def cast_binned(
 # threads (neighbouring rays cost about the same, so the shares balance). The kernels release
 # the GIL while they run; results are identical to one launch.
 
-# Below this many rays (or cells) per thread the launch stays on one thread: waking an idle
-# second core cost up to ~5 ms on the 2-core VMs we measured (docs/BENCHMARKS.md, "Lidar").
+# Below this many rays per thread a launch stays on one thread: waking an idle second core
+# cost up to ~5 ms on the 2-core VMs we measured (docs/BENCHMARKS.md, "Lidar"). A cube-map
+# cell costs about as much as CELL_COST rays (it tests every geom; ~0.8 us vs 0.1 us).
 MIN_ITEMS_PER_THREAD = 65536
+CELL_COST = 8
 _pool: ThreadPoolExecutor | None = None
 _pool_workers = 0
 _pool_lock = threading.Lock()
@@ -502,13 +504,16 @@ def _executor(workers: int) -> ThreadPoolExecutor:
         return _pool
 
 
-def launch_split(kernel, inputs: list, outputs: list, split: set[int], threads: int) -> None:
+def launch_split(
+    kernel, inputs: list, outputs: list, split: set[int], threads: int, item_cost: int = 1
+) -> None:
     """``wp.launch`` over dim (B, N) from ``outputs[0].shape``, N shared by up to ``threads``.
 
     ``split`` names the inputs indexed by the second launch axis; every output is.
+    ``item_cost``: work of one launch item in rays, for the one-thread threshold.
     """
     nscene, n = outputs[0].shape[:2]
-    threads = max(1, min(int(threads), (nscene * n) // MIN_ITEMS_PER_THREAD))
+    threads = max(1, min(int(threads), (nscene * n * item_cost) // MIN_ITEMS_PER_THREAD))
     device = outputs[0].device
 
     def share(t: int) -> None:
@@ -565,9 +570,8 @@ def build_bins_threads(
     """``build_bins`` with the cells shared over ``threads`` CPU threads."""
     inputs = [geom_size, geom_pos, geom_mat, geom_ext, geom_rbound, geom_enabled, geom_front]
     outputs = [cand_geom_out, cand_t_out, cand_n_out, cand_drop_out]
-    launch_split(
-        build_bins, inputs + [origin, bin_axis, bin_cos, bin_sin], outputs, {8, 9, 10}, threads
-    )
+    inputs += [origin, bin_axis, bin_cos, bin_sin]
+    launch_split(build_bins, inputs, outputs, {8, 9, 10}, threads, item_cost=CELL_COST)
 
 
 def cast_binned_threads(
