@@ -17,6 +17,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from . import lidar
@@ -123,7 +124,8 @@ def scan(
       config: ``SensorConfig``.
       reflectivity: optional float [G] or [B, G] per-geom reflectivity in [0, 1].
       **cast_kwargs: forwarded to ``lidar.scene_geometry``/``cast_geometry`` (geomgroup,
-        bodyexclude, flg_static, skip_unsupported, method, cells_per_edge, capacity).
+        bodyexclude, flg_static, skip_unsupported, method, cells_per_edge, capacity,
+        cpu_threads).
 
     Returns:
       ``Scan`` with a leading B axis iff ``data`` is batched.
@@ -178,3 +180,72 @@ def scan(
     if not batched:
         out = jax.tree.map(lambda x: x[0], out)
     return out
+
+
+class MjLidar:
+    """A lidar on a plain MuJoCo model, scanning ``mujoco.MjData`` states step by step.
+
+    For simulations stepped on the host with ``mujoco.mj_step``: the model goes to the
+    device once, and each call copies only what moves (``geom_xpos``, ``geom_xmat`` and the
+    sensor site's pose) into one jitted scan. The result is exactly ``scan`` on
+    ``mjx.put_data(model, data)``, without converting the whole ``MjData`` each step.
+
+    Example:
+      >>> lidar = MjLidar(m, "lidar", patterns.Mid360Pattern())
+      >>> for k in range(100):
+      ...     mujoco.mj_step(m, d)
+      ...     s = lidar(d, jax.random.key(k), frame=k)  # Scan: points [R, 4] sensor frame
+
+    Args:
+      model: ``mujoco.MjModel``.
+      site: name of the site the sensor rides on (its frame is the sensor frame).
+      pattern: a scan pattern (``patterns.Mid360Pattern()`` etc.); frame ``k`` of it is cast.
+      config: ``SensorConfig``.
+      reflectivity: optional float [G] per-geom reflectivity.
+      **cast_kwargs: as ``scan`` (geomgroup, bodyexclude, method, cpu_threads, ...).
+    """
+
+    def __init__(
+        self,
+        model,
+        site: str,
+        pattern,
+        config: SensorConfig = SensorConfig(),
+        reflectivity=None,
+        **cast_kwargs,
+    ):
+        import mujoco
+        from mujoco import mjx
+
+        site_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
+        if site_id < 0:
+            names = [model.site(i).name for i in range(model.nsite)]
+            raise ValueError(f"MjLidar: the model has no site {site!r}; sites: {names}")
+        self.model, self.site_id = model, site_id
+        mx = mjx.put_model(model)
+        template = mjx.make_data(mx)
+        refl = None if reflectivity is None else jnp.asarray(reflectivity, jnp.float32)
+
+        def run(geom_xpos, geom_xmat, site_pos, site_mat, frame, key):
+            data = template.replace(geom_xpos=geom_xpos, geom_xmat=geom_xmat)
+            pose = Pose(site_pos, site_mat.reshape(3, 3))
+            dirs = pattern.frame(frame).directions
+            return scan(mx, data, pose, dirs, key, config, reflectivity=refl, **cast_kwargs)
+
+        self._run = jax.jit(run)
+
+    def __call__(self, data, key: jax.Array, frame: int = 0) -> Scan:
+        """Scan of ``data`` (after ``mj_forward``/``mj_step``, which update the poses)."""
+        if data.geom_xpos.shape != (self.model.ngeom, 3):
+            raise ValueError(
+                f"MjLidar: data.geom_xpos has shape {data.geom_xpos.shape}, the model has "
+                f"{self.model.ngeom} geoms; pass an MjData of the model given at construction"
+            )
+        return self._run(
+            np.asarray(data.geom_xpos, np.float32),
+            np.asarray(data.geom_xmat, np.float32).reshape(-1, 3, 3),
+            np.asarray(data.site_xpos[self.site_id], np.float32),
+            np.asarray(data.site_xmat[self.site_id], np.float32),
+            jnp.int32(frame),
+            key,
+        )

@@ -112,3 +112,33 @@ def test_bad_config_names_the_field():
         sensor.SensorConfig(dropout_prob=1.5)
     with pytest.raises(ValueError, match="min_range"):
         sensor.SensorConfig(min_range=5.0, max_range=1.0)
+
+
+def test_mjlidar_scans_host_mujoco_states_like_scan():
+    """MjLidar on a stepped MjData (a mocap body moving) equals scan on mjx.put_data."""
+    from indoorbev_sim import patterns
+
+    xml = XML.replace(
+        "</worldbody>",
+        '<body name="cart" mocap="true" pos="2 1 0.5"><geom type="box" size="0.3 0.3 0.5"/>'
+        "</body></worldbody>",
+    )
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    pattern = patterns.GridPattern(90, 8)
+    cfg = sensor.SensorConfig(range_noise_std=0.01, dropout_prob=0.1, max_range=20.0)
+    lidar = sensor.MjLidar(m, "lidar", pattern, cfg)
+    mx = mjx.put_model(m)
+    for k in range(3):
+        d.mocap_pos[0] = [2.0 - 0.5 * k, 1.0, 0.5]
+        mujoco.mj_forward(m, d)
+        key = jax.random.key(k)
+        got = lidar(d, key, frame=k)
+        dx = mjx.put_data(m, d)
+        dirs = pattern.frame(k).directions
+        want = _scan(mx, dx, sensor.pose_from_site(dx, 0), dirs, key, cfg)
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        assert np.asarray(got.geom_id == m.ngeom - 1).sum() > 0  # the cart is seen
+    with pytest.raises(ValueError, match="no site 'lidar2'; sites: \\['lidar'\\]"):
+        sensor.MjLidar(m, "lidar2", pattern)
