@@ -21,6 +21,8 @@ launch per frame, which is the whole "refit" a moving mocap body needs.
 
 from __future__ import annotations
 
+import functools
+import inspect
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -509,7 +511,7 @@ def launch_split(
 ) -> None:
     """``wp.launch`` over dim (B, N) from ``outputs[0].shape``, N shared by up to ``threads``.
 
-    ``split`` names the inputs indexed by the second launch axis; every output is.
+    ``split``: positions of the inputs indexed by the second launch axis (every output is).
     ``item_cost``: work of one launch item in rays, for the one-thread threshold.
     """
     nscene, n = outputs[0].shape[:2]
@@ -530,69 +532,26 @@ def launch_split(
         p.result()
 
 
-def cast_brute_threads(
-    geom_type: wp.array2d(dtype=int),
-    geom_size: wp.array2d(dtype=wp.vec3),
-    geom_pos: wp.array2d(dtype=wp.vec3),
-    geom_mat: wp.array2d(dtype=wp.mat33),
-    geom_rbound: wp.array2d(dtype=float),
-    geom_enabled: wp.array2d(dtype=int),
-    dirs: wp.array2d(dtype=wp.vec3),
-    origin: wp.array(dtype=wp.vec3),
-    max_range: wp.array(dtype=float),
-    threads: int,
-    dist_out: wp.array2d(dtype=float),
-    geom_out: wp.array2d(dtype=int),
-):
-    """``cast_brute`` with the rays shared over ``threads`` CPU threads."""
-    inputs = [geom_type, geom_size, geom_pos, geom_mat, geom_rbound, geom_enabled, dirs]
-    launch_split(cast_brute, inputs + [origin, max_range], [dist_out, geom_out], {6}, threads)
+def threaded(kernel, num_outputs: int, split: tuple[str, ...], item_cost: int = 1):
+    """A host function for ``wp.jax_callable`` that runs ``kernel`` through ``launch_split``.
 
+    Its signature is the kernel's, with ``threads: int`` after the inputs (``jax_callable``
+    reads the annotations); ``split`` names the inputs indexed by the second launch axis.
+    """
+    hints = inspect.get_annotations(kernel.func, eval_str=True)
+    names = list(inspect.signature(kernel.func).parameters)
+    inputs, outputs = names[:-num_outputs], names[-num_outputs:]
+    split_at = {inputs.index(n) for n in split}
+    n_in = len(inputs)
 
-def build_bins_threads(
-    geom_size: wp.array2d(dtype=wp.vec3),
-    geom_pos: wp.array2d(dtype=wp.vec3),
-    geom_mat: wp.array2d(dtype=wp.mat33),
-    geom_ext: wp.array2d(dtype=wp.vec3),
-    geom_rbound: wp.array2d(dtype=float),
-    geom_enabled: wp.array2d(dtype=int),
-    geom_front: wp.array2d(dtype=int),
-    origin: wp.array(dtype=wp.vec3),
-    bin_axis: wp.array2d(dtype=wp.vec3),
-    bin_cos: wp.array2d(dtype=float),
-    bin_sin: wp.array2d(dtype=float),
-    threads: int,
-    cand_geom_out: wp.array3d(dtype=int),
-    cand_t_out: wp.array3d(dtype=float),
-    cand_n_out: wp.array2d(dtype=int),
-    cand_drop_out: wp.array2d(dtype=float),
-):
-    """``build_bins`` with the cells shared over ``threads`` CPU threads."""
-    inputs = [geom_size, geom_pos, geom_mat, geom_ext, geom_rbound, geom_enabled, geom_front]
-    outputs = [cand_geom_out, cand_t_out, cand_n_out, cand_drop_out]
-    inputs += [origin, bin_axis, bin_cos, bin_sin]
-    launch_split(build_bins, inputs, outputs, {8, 9, 10}, threads, item_cost=CELL_COST)
+    def host(*args):
+        launch_split(kernel, list(args[:n_in]), list(args[n_in + 1 :]), split_at, args[n_in],
+                     item_cost)  # fmt: skip
 
-
-def cast_binned_threads(
-    geom_type: wp.array2d(dtype=int),
-    geom_size: wp.array2d(dtype=wp.vec3),
-    geom_pos: wp.array2d(dtype=wp.vec3),
-    geom_mat: wp.array2d(dtype=wp.mat33),
-    geom_enabled: wp.array2d(dtype=int),
-    cand_geom: wp.array3d(dtype=int),
-    cand_t: wp.array3d(dtype=float),
-    cand_n: wp.array2d(dtype=int),
-    cand_drop: wp.array2d(dtype=float),
-    dirs: wp.array2d(dtype=wp.vec3),
-    origin: wp.array(dtype=wp.vec3),
-    max_range: wp.array(dtype=float),
-    cells_per_edge: int,
-    threads: int,
-    dist_out: wp.array2d(dtype=float),
-    geom_out: wp.array2d(dtype=int),
-):
-    """``cast_binned`` with the rays shared over ``threads`` CPU threads."""
-    inputs = [geom_type, geom_size, geom_pos, geom_mat, geom_enabled]
-    inputs += [cand_geom, cand_t, cand_n, cand_drop, dirs, origin, max_range, cells_per_edge]
-    launch_split(cast_binned, inputs, [dist_out, geom_out], {9}, threads)
+    param = functools.partial(inspect.Parameter, kind=inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    params = [param(n, annotation=hints[n]) for n in inputs]
+    params += [param("threads", annotation=int)] + [param(n, annotation=hints[n]) for n in outputs]
+    host.__signature__ = inspect.Signature(params)
+    host.__annotations__ = {q.name: q.annotation for q in params}
+    host.__name__ = host.__qualname__ = f"{kernel.key}_threads"
+    return host

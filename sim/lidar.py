@@ -255,24 +255,29 @@ def default_cells_per_edge(num_rays: int) -> int:
 # ----------------------------------------------------------------------------- Warp bridge
 
 
+# Kernel, number of outputs, inputs indexed by the second launch axis, cost of one launch
+# item in rays (for the one-thread threshold of ``_lidar_kernels.launch_split``).
+_KERNELS = {
+    "brute": (K.cast_brute, 2, ("dirs",), 1),
+    "build": (K.build_bins, 4, ("bin_axis", "bin_cos", "bin_sin"), K.CELL_COST),
+    "binned": (K.cast_binned, 2, ("dirs",), 1),
+}
+
+
 @functools.cache
 def _ffi(name: str):
     """One Warp launch per call (CUDA, or a CPU caster told to use one thread)."""
-    kernel = {"brute": K.cast_brute, "build": K.build_bins, "binned": K.cast_binned}[name]
-    nout = {"brute": 2, "build": 4, "binned": 2}[name]
+    kernel, nout, _, _ = _KERNELS[name]
     return wp.jax_kernel(kernel, num_outputs=nout)
 
 
 @functools.cache
 def _ffi_threads(name: str):
     """The launch shared over CPU threads (``_lidar_kernels.launch_split``)."""
-    func = {
-        "brute": K.cast_brute_threads,
-        "build": K.build_bins_threads,
-        "binned": K.cast_binned_threads,
-    }[name]
-    nout = {"brute": 2, "build": 4, "binned": 2}[name]
-    return wp.jax_callable(func, num_outputs=nout, vmap_method=None)
+    kernel, nout, split, cost = _KERNELS[name]
+    return wp.jax_callable(
+        K.threaded(kernel, nout, split, cost), num_outputs=nout, vmap_method=None
+    )
 
 
 def default_cpu_threads() -> int:
