@@ -142,3 +142,6 @@ def test_mjlidar_scans_host_mujoco_states_like_scan():
         assert np.asarray(got.geom_id == m.ngeom - 1).sum() > 0  # the cart is seen
     with pytest.raises(ValueError, match="no site 'lidar2'; sites: \\['lidar'\\]"):
         sensor.MjLidar(m, "lidar2", pattern)
+    other = mujoco.MjData(mujoco.MjModel.from_xml_string(XML))  # one geom fewer
+    with pytest.raises(ValueError, match=r"geom_xpos has shape \(3, 3\), the model has 4 geoms"):
+        lidar(other, jax.random.key(0))
