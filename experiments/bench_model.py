@@ -14,6 +14,10 @@ The peer's upsampler defaults to bilinear x2 + 3x3 conv steps; ours is a dense l
 depth-to-space per step, the same map as the peer's ``up_mode="convT2"``. Both peer modes
 can be timed (``--peer``); the like-for-like ratio is against ``convT2``.
 
+With ``INDOORBEV_RETAIN_MEMORY=1`` it first calls ``indoorbev_jax.host_memory.retain_freed_memory``:
+both sides then reuse freed pages instead of faulting them in every step (the header says
+which); without it, glibc's default.
+
 Needs ``torch==2.13.0`` in the venv for the peer (benchmark-only, not a dependency)::
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_model.py --preset small --mode train \
@@ -42,6 +46,7 @@ import numpy as np
 import optax
 
 from indoorbev_jax.config import Config
+from indoorbev_jax.host_memory import retain_freed_memory
 from indoorbev_jax.models import IndoorBEV
 
 PEER_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "peers")
@@ -155,7 +160,7 @@ def _peak_rss_gib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
 
-def main(argv=None):
+def main(argv=None, retained: bool = False):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--preset", default="small", choices=["tiny", "small", "paper"])
     ap.add_argument("--mode", default="train", choices=["fwd", "train"])
@@ -191,7 +196,8 @@ def main(argv=None):
         runners["jax"] = run
         print(
             f"{label}: jax {jax.__version__} {jax.devices()[0].platform} params {n / 1e6:.3f} M, "
-            f"compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB",
+            f"compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB, "
+            f"freed memory retained {'yes' if retained else 'no'} (indoorbev_jax.host_memory)",
             flush=True,
         )
         if a.vs:
@@ -235,4 +241,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    main(retained=retain_freed_memory())  # before the first JAX computation

@@ -12,6 +12,7 @@ import argparse
 import dataclasses
 
 from indoorbev_jax.config import Config
+from indoorbev_jax.host_memory import retain_freed_memory
 from indoorbev_jax.sweep import run_sweep, stack_hypers
 
 
@@ -43,4 +44,5 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
+    retain_freed_memory()  # before the first JAX computation
     main()

@@ -12,6 +12,7 @@ import dataclasses
 import logging
 
 from indoorbev_jax.config import Config, ConfigError, with_overrides
+from indoorbev_jax.host_memory import retain_freed_memory
 from indoorbev_jax.train import train_and_evaluate
 
 
@@ -88,4 +89,5 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
+    retain_freed_memory()  # before the first JAX computation
     main()
