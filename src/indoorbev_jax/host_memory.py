@@ -1,7 +1,7 @@
 """Keep freed host memory in the process, so a jitted step does not page-fault it in anew.
 
 XLA:CPU allocates each execution's temporaries as one block (5.5 GiB for the ``paper``
-train step at batch 1) and frees it when the step ends. glibc's malloc serves blocks over
+forward + backward at batch 1) and frees it when the step ends. glibc's malloc serves blocks over
 32 MiB with ``mmap`` and gives them back on ``free``; the next step then page-faults every
 4 KiB page in again, and the kernel zeroes each one. On the 2-core benchmark machine that
 was 9 s of system time in a 13 s step (docs/BENCHMARKS.md, "Fresh pages every step").
