@@ -14,9 +14,9 @@ The peer's upsampler defaults to bilinear x2 + 3x3 conv steps; ours is a dense l
 depth-to-space per step, the same map as the peer's ``up_mode="convT2"``. Both peer modes
 can be timed (``--peer``); the like-for-like ratio is against ``convT2``.
 
-With ``INDOORBEV_RETAIN_MEMORY=1`` it first calls ``indoorbev_jax.host_memory.retain_freed_memory``:
-both sides then reuse freed pages instead of faulting them in every step (the header says
-which); without it, glibc's default.
+With ``INDOORBEV_RETAIN_MEMORY=1`` importing ``indoorbev_jax`` applies ``host_memory``: both
+sides then reuse freed pages instead of faulting them in every step (the header says which);
+without it, glibc's default.
 
 Needs ``torch==2.13.0`` in the venv for the peer (benchmark-only, not a dependency)::
 
@@ -45,8 +45,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from indoorbev_jax import host_memory
 from indoorbev_jax.config import Config
-from indoorbev_jax.host_memory import retain_freed_memory
 from indoorbev_jax.models import IndoorBEV
 
 PEER_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "peers")
@@ -160,7 +160,7 @@ def _peak_rss_gib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
 
-def main(argv=None, retained: bool = False):
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--preset", default="small", choices=["tiny", "small", "paper"])
     ap.add_argument("--mode", default="train", choices=["fwd", "train"])
@@ -197,7 +197,7 @@ def main(argv=None, retained: bool = False):
         print(
             f"{label}: jax {jax.__version__} {jax.devices()[0].platform} params {n / 1e6:.3f} M, "
             f"compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB, "
-            f"freed memory retained {'yes' if retained else 'no'} (indoorbev_jax.host_memory)",
+            f"freed memory retained {'yes' if host_memory.retained else 'no'} (host_memory)",
             flush=True,
         )
         if a.vs:
@@ -241,4 +241,4 @@ def main(argv=None, retained: bool = False):
 
 
 if __name__ == "__main__":
-    main(retained=retain_freed_memory())  # before the first JAX computation
+    main()

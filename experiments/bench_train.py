@@ -18,7 +18,6 @@ import time
 import jax
 
 from indoorbev_jax.config import Config
-from indoorbev_jax.host_memory import retain_freed_memory
 from indoorbev_jax.sweep import init_sweep, make_sweep_step, stack_hypers
 from indoorbev_jax.train import Hyper, init_state, make_train_step
 
@@ -87,5 +86,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    retain_freed_memory()  # before the first JAX computation
     main()

@@ -17,7 +17,6 @@ import numpy as np
 from indoorbev_jax import viz
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
-from indoorbev_jax.host_memory import retain_freed_memory
 from indoorbev_jax.metrics import Evaluator
 from indoorbev_jax.predict import Predictor, load_model, render_prediction, to_labels
 
@@ -94,5 +93,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    retain_freed_memory()  # before the first JAX computation
     main()

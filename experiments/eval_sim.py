@@ -23,7 +23,6 @@ import jax
 
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.evaluate import to_json
-from indoorbev_jax.host_memory import retain_freed_memory
 from indoorbev_jax.metrics import Evaluator, format_table
 from indoorbev_jax.predict import load_model
 from indoorbev_jax.train import make_predict_fn
@@ -96,5 +95,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    retain_freed_memory()  # before the first JAX computation
     main()

@@ -20,7 +20,6 @@ import time
 import jax
 
 from indoorbev_jax.config import Config, ConfigError, with_overrides
-from indoorbev_jax.host_memory import retain_freed_memory
 from indoorbev_jax.train import Hyper, init_state, make_train_step
 
 
@@ -69,5 +68,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    retain_freed_memory()  # before the first JAX computation
     main()

@@ -12,7 +12,6 @@ import argparse
 import dataclasses
 
 from indoorbev_jax.config import Config
-from indoorbev_jax.host_memory import retain_freed_memory
 from indoorbev_jax.sweep import run_sweep, stack_hypers
 
 
@@ -44,5 +43,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    retain_freed_memory()  # before the first JAX computation
     main()

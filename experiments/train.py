@@ -12,7 +12,6 @@ import dataclasses
 import logging
 
 from indoorbev_jax.config import Config, ConfigError, with_overrides
-from indoorbev_jax.host_memory import retain_freed_memory
 from indoorbev_jax.train import train_and_evaluate
 
 
@@ -89,5 +88,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    retain_freed_memory()  # before the first JAX computation
     main()

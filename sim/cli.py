@@ -19,7 +19,6 @@ import sys
 from pathlib import Path
 
 from indoorbev_jax.config import Config
-from indoorbev_jax.host_memory import retain_freed_memory
 
 
 def _config(args) -> Config:
@@ -41,7 +40,6 @@ def _use_cache(path: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    retain_freed_memory()  # before the first JAX computation
     parser = argparse.ArgumentParser(prog="indoorbev-sim", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     default_cache = os.environ.get("INDOORBEV_SIM_CACHE", "~/.cache/indoorbev_sim/xla")

@@ -15,8 +15,8 @@ from indoorbev_jax import host_memory
 # calls.
 PROBE = """
 import json, resource, sys
-from indoorbev_jax.host_memory import retain_freed_memory
-retained = retain_freed_memory()
+from indoorbev_jax import host_memory  # the import applies it when asked
+retained = host_memory.retained
 import jax, jax.numpy as jnp
 x = jnp.linspace(0.0, 1.0, 4096 * 64, dtype=jnp.float32).reshape(4096, 64)
 step = jax.jit(lambda x: jnp.tanh(x @ x.T).sum(axis=1)).lower(x).compile()

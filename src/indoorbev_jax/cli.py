@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 
 from indoorbev_jax.config import Config
-from indoorbev_jax.host_memory import retain_freed_memory
 
 
 def _add_preset(parser: argparse.ArgumentParser) -> None:
@@ -182,7 +181,6 @@ def run_predict(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    retain_freed_memory()  # before the first JAX computation
     args = build_parser().parse_args(argv)
     return args.func(args)
 

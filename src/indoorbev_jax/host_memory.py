@@ -12,11 +12,11 @@ before: the ``paper`` train step at batch 2 took 16.8 s instead of 29.1 s. The p
 why it is opt-in: resident memory never shrinks, and small allocations that land in the
 freed blocks fragment the heap, so it keeps growing for a while (in a 64 MiB-temporary
 probe, to 4-8 temporaries' worth over 30 calls; the paper step peaked at 12.3 GiB RSS for
-11.1 GiB of XLA buffers). With ``INDOORBEV_RETAIN_MEMORY=1`` in the environment, the
-experiment scripts and the ``indoorbev`` / ``indoorbev-sim`` commands apply it first thing;
-call ``retain_freed_memory(force=True)`` at the start of your own script to apply it
-there. It does nothing on a C library other than glibc, and threads that allocated before
-the call keep their own arenas, so call it before the first JAX computation.
+11.1 GiB of XLA buffers). With ``INDOORBEV_RETAIN_MEMORY=1`` in the environment, importing
+``indoorbev_jax`` applies it (so every experiment script and both commands do);
+``retain_freed_memory(force=True)`` applies it without the variable. It does nothing on a
+C library other than glibc, and threads that allocated before it keep their own arenas, so
+it has to come before the first JAX computation.
 """
 
 from __future__ import annotations
@@ -28,6 +28,9 @@ import os
 M_TRIM_THRESHOLD = -1
 M_MMAP_MAX = -4
 M_ARENA_MAX = -8
+
+# Whether this process's malloc has been told to retain freed memory.
+retained = False
 
 
 def glibc() -> ctypes.CDLL | None:
@@ -50,6 +53,8 @@ def retain_freed_memory(force: bool = False) -> bool:
     libc = glibc()
     if libc is None:
         return False
+    global retained
     # -1 as size_t is the largest threshold: the heap's top is never given back.
     settings = ((M_ARENA_MAX, 1), (M_MMAP_MAX, 0), (M_TRIM_THRESHOLD, -1))
-    return all(libc.mallopt(param, value) == 1 for param, value in settings)
+    retained = all(libc.mallopt(param, value) == 1 for param, value in settings)
+    return retained
