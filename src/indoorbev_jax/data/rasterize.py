@@ -58,10 +58,18 @@ def instance_ids_from_masks(masks: jax.Array, valid: jax.Array) -> jax.Array:
     masks = jnp.asarray(masks, bool) & jnp.asarray(valid, bool)[:, None, None]
     if masks.shape[0] == 0:
         return jnp.zeros(masks.shape[1:], jnp.int32)
+    n, h, w = masks.shape
     area = masks.sum(axis=(1, 2))  # [N]
     big = jnp.iinfo(jnp.int32).max
-    key = jnp.where(masks, area[:, None, None], big)  # [N, H, W]
-    owner = jnp.argmin(key, axis=0)  # first minimum: ties go to the lower index
+    if (h * w + 1) * n < big:
+        # One min over (area, index) packed in an int32: ties go to the lower index, and
+        # it is several times faster than argmin's variadic reduce on XLA:CPU.
+        packed = area * n + jnp.arange(n, dtype=area.dtype)
+        key = jnp.where(masks, packed[:, None, None], big)
+        owner = jnp.min(key, axis=0) % n
+    else:
+        key = jnp.where(masks, area[:, None, None], big)  # [N, H, W]
+        owner = jnp.argmin(key, axis=0)  # first minimum: ties go to the lower index
     return jnp.where(masks.any(axis=0), owner + 1, 0).astype(jnp.int32)
 
 
