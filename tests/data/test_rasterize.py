@@ -105,3 +105,20 @@ def test_bad_shapes_are_named():
         rasterize_boxes(jnp.zeros((3, 4)), jnp.ones(3, bool), GRID)
     with pytest.raises(ValueError, match="valid: expected shape"):
         rasterize_boxes(jnp.zeros((3, 5)), jnp.ones(2, bool), GRID)
+
+
+def test_instance_ids_equal_a_numpy_rederivation_with_ties():
+    rng = np.random.default_rng(4)
+    masks = rng.random((7, 32, 40)) < 0.3
+    masks[4] = masks[1]  # equal areas everywhere they overlap: ties go to index 1
+    valid = np.array([True, True, True, False, True, True, True])
+    ids = np.asarray(jax.jit(instance_ids_from_masks)(masks, valid))
+    claim = masks & valid[:, None, None]
+    area = claim.sum((1, 2))
+    expected = np.zeros((32, 40), np.int32)
+    for r, c in np.ndindex(32, 40):
+        owners = [k for k in range(7) if claim[k, r, c]]
+        if owners:
+            expected[r, c] = min(owners, key=lambda k: (area[k], k)) + 1
+    np.testing.assert_array_equal(ids, expected)
+    assert not (ids == 5).any() and (ids == 2).any()  # the copy of mask 1 never wins
