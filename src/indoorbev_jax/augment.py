@@ -79,6 +79,18 @@ def _finish(points, point_valid, targets: Targets, grid: GridConfig) -> Batch:
     return Batch(points=points, point_valid=point_valid, targets=targets)
 
 
+def _fill_free_slots(points, valid, new, new_valid) -> tuple[jax.Array, jax.Array]:
+    """Writes ``new[i]`` [K, 4] into the i-th free (invalid) slot of ``points`` [N, 4], in
+    index order, where ``new_valid[i]``; rows of ``new`` beyond the free slots are dropped.
+    Free slots are ranked by a running count (a stable argsort of ``valid`` picks the same
+    slots and costs 4x more on XLA:CPU)."""
+    k = new.shape[0]
+    count = jnp.cumsum(~valid)  # free slots up to and including each index
+    rank = jnp.clip(count - 1, 0, k - 1)
+    fill = ~valid & (count <= k) & new_valid[rank]
+    return jnp.where(fill[:, None], new[rank], points), valid | fill
+
+
 def global_transform(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig) -> Batch:
     """Random mirror (y -> -y), rotation about +z and uniform scaling about the origin."""
     k_flip, k_rot, k_scale = jax.random.split(key, 3)
@@ -115,12 +127,7 @@ def point_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConf
         lo = jnp.array([grid.x_range[0], grid.y_range[0], grid.z_range[0], 0.0])
         hi = jnp.array([grid.x_range[1], grid.y_range[1], grid.z_range[1], 1.0])
         clutter = jax.random.uniform(k_noise, (n_noise, 4), minval=lo, maxval=hi)
-        # The first n_noise free slots in index order, by a running count (a sort of
-        # the validity flags gives the same slots and cost 4x more on a CPU).
-        free_rank = jnp.cumsum(~valid) - 1
-        fill = ~valid & (free_rank < n_noise)
-        points = jnp.where(fill[:, None], clutter[jnp.minimum(free_rank, n_noise - 1)], points)
-        valid = valid | fill
+        points, valid = _fill_free_slots(points, valid, clutter, jnp.ones(n_noise, bool))
     if cfg.shuffle_points:
         # One sort by random 32-bit keys (jax.random.permutation sorts twice to break
         # ties; a tie among 2^32 keys only keeps two points in their order).
@@ -334,10 +341,7 @@ def gt_sampling(
             [world_xy, local[:, 2:3] + database.z[d], local[:, 3:]], axis=1
         )  # [P, 4]
         new_valid = database.point_valid[d] & accept
-        slots = jnp.argsort(valid, stable=True)[: new.shape[0]]
-        free = ~valid[slots] & new_valid
-        points = points.at[slots].set(jnp.where(free[:, None], new, points[slots]))
-        valid = valid.at[slots].set(valid[slots] | free)
+        points, valid = _fill_free_slots(points, valid, new, new_valid)
         put = lambda a, v: a.at[slot].set(jnp.where(accept, v, a[slot]))  # noqa: E731
         t = t.replace(
             classes=put(t.classes, database.classes[d]),
