@@ -7,8 +7,9 @@ training never uses: training draws ``fold_in(key(train.seed), 0)`` for its batc
 from the training seeds. Batch k of the set is ``generate_batch(fold_in(key(seed), k))``,
 so the set is the same on every run and machine (up to float rounding of the simulator).
 
-Prints the per-class table and writes the metrics as JSON (``--json``). The numbers are
-measured on simulated data: they are not the paper's real-world measurement.
+Prints the per-class table and the class confusion at mask IoU 0.5 (which class each object
+was detected as, or missed; ``metrics.class_confusion``), and writes both as JSON (``--json``).
+The numbers are measured on simulated data: they are not the paper's real-world measurement.
 """
 
 from __future__ import annotations
@@ -23,15 +24,16 @@ import jax
 
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.evaluate import to_json
-from indoorbev_jax.metrics import Evaluator, format_table
+from indoorbev_jax.metrics import Evaluator, format_confusion, format_table
 from indoorbev_jax.predict import load_model
 from indoorbev_jax.train import make_predict_fn
 
 TEST_SEED = 1_000_003  # root seed of the held-out test set (training uses train.seed, 0)
+CONFUSION_IOU = 0.5
 
 
 def evaluate_sim(config, params, split: str, frames: int, batch: int, seed: int, progress=True):
-    """Metrics of ``params`` over ``frames`` simulated frames of ``split``."""
+    """An ``Evaluator`` holding ``params``' outputs on ``frames`` simulated frames of ``split``."""
     from indoorbev_sim.generate import jitted_generate
     from tqdm import tqdm
 
@@ -44,7 +46,7 @@ def evaluate_sim(config, params, split: str, frames: int, batch: int, seed: int,
     for k in tqdm(range(frames // batch), disable=not progress, unit="batch"):
         data, _ = generate(jax.random.fold_in(root, k))
         evaluator.add_output(predict_fn(params, data.points, data.point_valid), data.targets)
-    return evaluator.compute()
+    return evaluator
 
 
 def main(argv=None) -> None:
@@ -74,19 +76,27 @@ def main(argv=None) -> None:
             p.error(str(e))
         config = dataclasses.replace(config, inference=inference)
     start = time.perf_counter()
-    results = evaluate_sim(
+    evaluator = evaluate_sim(
         config, params, args.split, args.frames, args.batch, args.seed, not args.no_progress
     )
+    results, confusion = evaluator.compute(), evaluator.confusion(CONFUSION_IOU)
     print(
         f"model {args.model} (preset {config.name}), {args.frames} simulated '{args.split}' "
         f"frames, seed {args.seed}, score threshold {config.inference.score_threshold}, "
         f"{time.perf_counter() - start:.0f} s"
     )
     print(format_table(results))
+    print(f"\nconfusion at mask IoU {CONFUSION_IOU:g} (rows: ground truth, columns: found as)")
+    print(format_confusion(confusion, config.data.class_names))
     if args.json:
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)
         payload = json.loads(to_json(results))
+        payload[f"confusion@{CONFUSION_IOU:g}"] = {
+            "rows": list(config.data.class_names),
+            "columns": [*config.data.class_names, "missed"],
+            "counts": confusion.tolist(),
+        }
         payload["setup"] = {"model": str(args.model), "split": args.split,
                             "frames": args.frames, "seed": args.seed,
                             "score_threshold": config.inference.score_threshold}  # fmt: skip

@@ -12,6 +12,8 @@ from indoorbev_jax.config import CLASS_NAMES, NUM_CLASSES, InferenceConfig
 from indoorbev_jax.inference import panoptic_inference
 from indoorbev_jax.metrics import (
     Evaluator,
+    class_confusion,
+    format_confusion,
     mask_ap,
     mask_intersections,
     panoptic_quality,
@@ -26,8 +28,8 @@ THRESHOLDS = (0.25, 0.5)
 # --------------------------------------------------------------------------- references
 
 
-def coco_reference(gts, dets, thresholds=THRESHOLDS, num_classes=NUM_CLASSES):
-    """AP per threshold and per class from pycocotools' COCOeval (segm)."""
+def _coco_eval(gts, dets, thresholds, num_classes, agnostic=False):
+    """pycocotools' COCOeval (segm) after ``evaluate``; ``agnostic``: every object category 1."""
     from pycocotools import mask as mask_utils
     from pycocotools.coco import COCO
     from pycocotools.cocoeval import COCOeval
@@ -35,22 +37,25 @@ def coco_reference(gts, dets, thresholds=THRESHOLDS, num_classes=NUM_CLASSES):
     def rle(m):
         return mask_utils.encode(np.asfortranarray(m.astype(np.uint8)))
 
+    def category(c):
+        return 1 if agnostic else int(c) + 1
+
     images, anns, results = [], [], []
     for i, ((gm, gc), (dm, dc, ds)) in enumerate(zip(gts, dets, strict=True)):
         images.append({"id": i + 1, "height": gm.shape[1], "width": gm.shape[2]})
         for m, c in zip(gm, gc, strict=True):
             r = rle(m)
             anns.append({
-                "id": len(anns) + 1, "image_id": i + 1, "category_id": int(c) + 1,
+                "id": len(anns) + 1, "image_id": i + 1, "category_id": category(c),
                 "segmentation": r, "area": float(mask_utils.area(r)),
                 "bbox": mask_utils.toBbox(r).tolist(), "iscrowd": 0,
             })  # fmt: skip
         for m, c, s in zip(dm, dc, ds, strict=True):
             results.append({
-                "image_id": i + 1, "category_id": int(c) + 1, "segmentation": rle(m),
+                "image_id": i + 1, "category_id": category(c), "segmentation": rle(m),
                 "score": float(s),
             })  # fmt: skip
-    categories = [{"id": k + 1, "name": str(k)} for k in range(num_classes)]
+    categories = [{"id": k + 1, "name": str(k)} for k in range(1 if agnostic else num_classes)]
     with contextlib.redirect_stdout(io.StringIO()):
         gt = COCO()
         gt.dataset = {"images": images, "annotations": anns, "categories": categories}
@@ -67,6 +72,13 @@ def coco_reference(gts, dets, thresholds=THRESHOLDS, num_classes=NUM_CLASSES):
         ev.params.areaRng = [[0, 1e10]]
         ev.params.areaRngLbl = ["all"]
         ev.evaluate()
+    return ev
+
+
+def coco_reference(gts, dets, thresholds=THRESHOLDS, num_classes=NUM_CLASSES):
+    """AP per threshold and per class from pycocotools' COCOeval (segm)."""
+    ev = _coco_eval(gts, dets, thresholds, num_classes)
+    with contextlib.redirect_stdout(io.StringIO()):
         ev.accumulate()
     precision = ev.eval["precision"][:, :, :, 0, 0]  # [T, R, K]
     ap = {}
@@ -76,6 +88,24 @@ def coco_reference(gts, dets, thresholds=THRESHOLDS, num_classes=NUM_CLASSES):
     per_class = {k: {thr: float(np.mean(precision[t, :, k])) for t, thr in enumerate(thresholds)}
                  for k in range(num_classes)}  # fmt: skip
     return ap, per_class
+
+
+def coco_confusion_reference(gts, dets, threshold, num_classes=NUM_CLASSES):
+    """Confusion from pycocotools' ``dtMatches`` with every object in one category."""
+    ev = _coco_eval(gts, dets, (threshold,), num_classes, agnostic=True)
+    gt_class = np.concatenate([np.asarray(gc, np.int64) for _, gc in gts])  # by annotation id - 1
+    det_class = np.concatenate([np.asarray(dc, np.int64) for _, dc, _ in dets])  # by result id - 1
+    confusion = np.zeros((num_classes, num_classes + 1), np.int64)
+    for e in ev.evalImgs:
+        if e is None:
+            continue
+        for did, gid in zip(e["dtIds"], e["dtMatches"][0], strict=True):
+            if gid > 0:
+                confusion[gt_class[int(gid) - 1], det_class[did - 1]] += 1
+        for gid, hit in zip(e["gtIds"], e["gtMatches"][0], strict=True):
+            if hit == 0:
+                confusion[gt_class[gid - 1], num_classes] += 1
+    return confusion
 
 
 def random_mask(rng, h, w):
@@ -249,6 +279,40 @@ def test_mask_ap_rejects_bad_input():
         mask_ap([(m, np.array([0]))], [(m, np.array([9]), np.array([0.5]))])
     with pytest.raises(ValueError, match="frame 0"):
         mask_ap([(m, np.array([0]))], [(np.ones((1, 3, 4), bool), np.array([0]), np.ones(1))])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("threshold", [0.25, 0.5])
+def test_class_confusion_equals_pycocotools_agnostic_matches(seed, threshold):
+    gts, dets = random_frames(seed)
+    ours = class_confusion(gts, dets, threshold)
+    np.testing.assert_array_equal(ours, coco_confusion_reference(gts, dets, threshold))
+    num_gt = np.bincount(np.concatenate([gc for _, gc in gts]), minlength=NUM_CLASSES)
+    np.testing.assert_array_equal(ours.sum(1), num_gt)  # every object counted once
+    # random_frames relabels about 20 % of detections: some off the diagonal, most on it.
+    assert 0 < ours[:, :NUM_CLASSES].sum() - np.trace(ours) < np.trace(ours)
+    assert ours[:, NUM_CLASSES].sum() > 0
+
+
+def test_class_confusion_hand_example():
+    a = np.zeros((1, 6, 6), bool)
+    a[0, :3, :3] = True
+    b = np.zeros((1, 6, 6), bool)
+    b[0, 3:, 3:] = True
+    gts = [(np.concatenate([a, b]), np.array([0, 1]))]
+    # The higher-scored class-2 detection takes object 0 first; the class-0 duplicate finds
+    # nothing left, and object 1 has no detection: one confusion, one miss.
+    dets = [(np.concatenate([a, a]), np.array([0, 2]), np.array([0.5, 0.9]))]
+    expected = np.zeros((3, 4), np.int64)
+    expected[0, 2] = 1
+    expected[1, 3] = 1
+    np.testing.assert_array_equal(class_confusion(gts, dets, num_classes=3), expected)
+    text = format_confusion(expected, ["Table", "Chair", "Sofa"])
+    assert text.splitlines()[1].split() == ["Table", "0", "0", "1", "0"]
+    with pytest.raises(ValueError, match="expected shape \\(2, 3\\)"):
+        format_confusion(expected, ["Table", "Chair"])
+    with pytest.raises(ValueError, match="iou_thresholds"):
+        class_confusion(gts, dets, 1.5, num_classes=3)
 
 
 # --------------------------------------------------------------------------- panoptic
@@ -463,6 +527,7 @@ def test_evaluator_equals_metric_functions_on_inference_output():
     ref = panoptic_reference(gts_pan, preds_pan)
     assert res["miou"] == pytest.approx(ref["miou"], nan_ok=True)
     assert res["semantic_miou"] == pytest.approx(ref["semantic_miou"], nan_ok=True)
+    np.testing.assert_array_equal(ev.confusion(0.5), class_confusion(gts_ap, dets_ap, 0.5))
     table = ev.table(res)
     assert all(name in table for name in CLASS_NAMES) and "AP@0.25" in table
     assert len(table.splitlines()) == NUM_CLASSES + 3

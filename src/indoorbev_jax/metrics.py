@@ -146,14 +146,14 @@ def _greedy_match(iou: np.ndarray, active: np.ndarray, threshold: float) -> np.n
       threshold: IoU threshold.
 
     Returns:
-      bool [F, D], which detections found a match.
+      int64 [F, D], the ground truth each detection matched, -1 for none.
     """
     f, d, g = iou.shape
     thr = min(threshold, 1 - 1e-10)  # as pycocotools
     taken = np.zeros((f, g), bool)
-    matched = np.zeros((f, d), bool)
+    match = np.full((f, d), -1, np.int64)
     if g == 0:
-        return matched
+        return match
     rows = np.arange(f)
     for j in range(d):
         cand = np.where(taken | ~(iou[:, j] >= thr), -np.inf, iou[:, j])  # [F, G]
@@ -162,14 +162,17 @@ def _greedy_match(iou: np.ndarray, active: np.ndarray, threshold: float) -> np.n
         # Last index reaching the maximum.
         last = g - 1 - np.argmax(cand[:, ::-1] == best[:, None], axis=1)
         taken[rows[hit], last[hit]] = True
-        matched[:, j] = hit
-    return matched
+        match[hit, j] = last[hit]
+    return match
 
 
-def _coco_precision(
-    frames: Sequence[_APFrame], thresholds: Sequence[float], num_classes: int, max_dets: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """pycocotools' ``accumulate``: precision [T, R, K] (-1 for classes without ground truth)."""
+def _stack_frames(frames: Sequence[_APFrame]):
+    """Frames padded to one array each, detections sorted by score within each frame.
+
+    Returns:
+      (iou float64 [F, D, G] (-inf padding), det_cls int64 [F, D] (-1 padding),
+      scores float64 [F, D], gt_cls int64 [F, G] (-2 padding)).
+    """
     nf = len(frames)
     dmax = max((len(fr.det_scores) for fr in frames), default=0)
     gmax = max((len(fr.gt_classes) for fr in frames), default=0)
@@ -185,6 +188,14 @@ def _coco_precision(
         det_cls[i, :nd] = fr.det_classes[order]
         scores[i, :nd] = fr.det_scores[order]
         gt_cls[i, :ng] = fr.gt_classes
+    return iou, det_cls, scores, gt_cls
+
+
+def _coco_precision(
+    frames: Sequence[_APFrame], thresholds: Sequence[float], num_classes: int, max_dets: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """pycocotools' ``accumulate``: precision [T, R, K] (-1 for classes without ground truth)."""
+    iou, det_cls, scores, gt_cls = _stack_frames(frames)
     iou = np.where(det_cls[:, :, None] == gt_cls[:, None, :], iou, -np.inf)
     # maxDets: only the best max_dets detections per frame and class take part.
     onehot = det_cls[:, :, None] == np.arange(num_classes)  # [F, D, K]
@@ -192,7 +203,7 @@ def _coco_precision(
         np.cumsum(onehot, axis=1) - 1, np.clip(det_cls, 0, None)[:, :, None], axis=2
     )[:, :, 0]  # [F, D]
     active = (det_cls >= 0) & (rank < max_dets)
-    matched = np.stack([_greedy_match(iou, active, t) for t in thresholds])  # [T, F, D]
+    matched = np.stack([_greedy_match(iou, active, t) >= 0 for t in thresholds])  # [T, F, D]
     num_gt = np.bincount(gt_cls[gt_cls >= 0], minlength=num_classes)
 
     precision = -np.ones((len(thresholds), len(_REC_THRS), num_classes))
@@ -279,6 +290,80 @@ def mask_ap(
         _ap_frame(g, d, i, num_classes) for i, (g, d) in enumerate(zip(gts, dets, strict=True))
     ]
     return _ap_from_frames(frames, iou_thresholds, num_classes, max_dets)
+
+
+def _confusion_from_frames(
+    frames: Sequence[_APFrame], iou_threshold: float, num_classes: int, max_dets: int = 100
+) -> np.ndarray:
+    (thr,) = _check_thresholds((iou_threshold,))
+    iou, det_cls, _, gt_cls = _stack_frames(frames)
+    active = (det_cls >= 0) & (np.arange(det_cls.shape[1]) < max_dets)
+    match = _greedy_match(iou, active, thr)  # class-agnostic: iou is not masked by class
+    confusion = np.zeros((num_classes, num_classes + 1), np.int64)
+    f, d = np.nonzero(match >= 0)
+    np.add.at(confusion, (gt_cls[f, match[f, d]], det_cls[f, d]), 1)
+    found = np.zeros(gt_cls.shape, bool)
+    found[f, match[f, d]] = True
+    missed = gt_cls[(gt_cls >= 0) & ~found]
+    confusion[:, num_classes] = np.bincount(missed, minlength=num_classes)
+    return confusion
+
+
+def class_confusion(
+    gts: Sequence[tuple[np.ndarray, np.ndarray]],
+    dets: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    iou_threshold: float = 0.5,
+    *,
+    num_classes: int = NUM_CLASSES,
+    max_dets: int = 100,
+) -> np.ndarray:
+    """Which class each ground-truth object was detected as, by class-agnostic mask matching.
+
+    The matching is ``mask_ap``'s (COCO greedy, score order, IoU >= threshold, at most
+    ``max_dets`` detections per frame) with the class test left out, i.e. pycocotools'
+    ``dtMatches`` when every object is given one category. So a row shows where a class's
+    objects went: found with the right class (the diagonal), found as another class, or not
+    found by any mask (last column).
+
+    Args:
+      gts, dets: as ``mask_ap``.
+      iou_threshold: mask IoU a match needs.
+      num_classes: class ids lie in ``0..num_classes - 1``.
+      max_dets: detections per frame taking part (highest scores first).
+
+    Returns:
+      int64 [num_classes, num_classes + 1]: entry [g, d] counts ground truths of class g
+      matched by a detection of class d; column ``num_classes`` counts those left unmatched.
+      Row sums are the ground-truth counts per class.
+
+    Example::
+
+        gt = (np.ones((1, 4, 4), bool), np.array([0]))
+        det = (np.ones((1, 4, 4), bool), np.array([2]), np.array([0.9]))
+        class_confusion([gt], [det], num_classes=3)  # [[0, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0]]
+    """
+    if len(gts) != len(dets):
+        raise ValueError(f"gts and dets: {len(gts)} vs {len(dets)} frames")
+    frames = [
+        _ap_frame(g, d, i, num_classes) for i, (g, d) in enumerate(zip(gts, dets, strict=True))
+    ]
+    return _confusion_from_frames(frames, iou_threshold, num_classes, max_dets)
+
+
+def format_confusion(confusion: np.ndarray, class_names: Sequence[str] = CLASS_NAMES) -> str:
+    """``class_confusion``'s matrix as a printable table, one row per ground-truth class."""
+    names = [n[:7] for n in class_names] + ["missed"]
+    if confusion.shape != (len(class_names), len(class_names) + 1):
+        raise ValueError(
+            f"confusion: expected shape {(len(class_names), len(class_names) + 1)} for "
+            f"{len(class_names)} class names, got {confusion.shape}"
+        )
+    corner = "gt \\ det"
+    width = max(len(n) for n in [*names, corner])
+    lines = [f"{corner:<{width}} " + " ".join(f"{n:>7}" for n in names)]
+    for name, row in zip(names[:-1], confusion, strict=True):
+        lines.append(f"{name:<{width}} " + " ".join(f"{int(v):>7}" for v in row))
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------- panoptic
@@ -606,6 +691,10 @@ class Evaluator:
             self.class_names,
             self.num_frames,
         )
+
+    def confusion(self, iou_threshold: float = 0.5) -> np.ndarray:
+        """``class_confusion`` over the frames added so far (int64 [K, K + 1])."""
+        return _confusion_from_frames(self._ap_frames, iou_threshold, self.num_classes)
 
     def table(self, results: dict | None = None) -> str:
         """The per-class table of ``compute()`` (or of ``results``) as printable text."""
