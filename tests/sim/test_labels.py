@@ -117,6 +117,16 @@ def test_padding_instance_ids_and_filters(frames):
             np.testing.assert_array_equal(counts[t.valid[b]], info.num_points[b][t.valid[b]])
 
 
+@pytest.mark.parametrize(
+    ("shape", "p_keep"), [((3, 20000), 0.7), ((2, 5, 33), 0.1), ((1, 1), 1.0), ((2, 64), 0.0)]
+)
+def test_front_order_equals_stable_argsort(shape, p_keep):
+    keep = jnp.asarray(np.random.default_rng(len(shape)).random(shape) < p_keep)
+    np.testing.assert_array_equal(
+        jax.jit(generate.front_order)(keep), jnp.argsort(~keep, axis=-1, stable=True)
+    )
+
+
 FINE = GridConfig(x_range=(-2.0, 2.0), y_range=(-2.0, 2.0), cell_size=0.01)
 
 
