@@ -23,13 +23,12 @@ from pathlib import Path
 import jax
 
 from indoorbev_jax.config import ConfigError
-from indoorbev_jax.evaluate import to_json
-from indoorbev_jax.metrics import Evaluator, format_confusion, format_table
+from indoorbev_jax.evaluate import CONFUSION_IOU, to_json
+from indoorbev_jax.metrics import Evaluator, confusion_json, format_confusion, format_table
 from indoorbev_jax.predict import load_model
 from indoorbev_jax.train import make_predict_fn
 
 TEST_SEED = 1_000_003  # root seed of the held-out test set (training uses train.seed, 0)
-CONFUSION_IOU = 0.5
 
 
 def evaluate_sim(config, params, split: str, frames: int, batch: int, seed: int, progress=True):
@@ -92,11 +91,9 @@ def main(argv=None) -> None:
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)
         payload = json.loads(to_json(results))
-        payload[f"confusion@{CONFUSION_IOU:g}"] = {
-            "rows": list(config.data.class_names),
-            "columns": [*config.data.class_names, "missed"],
-            "counts": confusion.tolist(),
-        }
+        payload[f"confusion@{CONFUSION_IOU:g}"] = confusion_json(
+            confusion, config.data.class_names, CONFUSION_IOU
+        )
         payload["setup"] = {"model": str(args.model), "split": args.split,
                             "frames": args.frames, "seed": args.seed,
                             "score_threshold": config.inference.score_threshold}  # fmt: skip

@@ -632,6 +632,11 @@ def test_eval_cli_matches_metric_functions(tmp_path, capsys):
     ref = panoptic_reference(gts_pan, preds_pan)
     assert res["miou"] == pytest.approx(ref["miou"]) and res["per_class"]["Misc"]["pq"] is None
     assert res["semantic_miou"] == pytest.approx(ref["semantic_miou"])
+    confusion = res["confusion@0.5"]
+    assert confusion["columns"] == [*names, "missed"]
+    np.testing.assert_array_equal(confusion["counts"], class_confusion(gts_ap, dets_ap, 0.5))
+    # Frame b's Person (class 6) was found as a Robot (class 7): the one confusion.
+    assert confusion["counts"][6][7] == 1 and "confusion at mask IoU 0.5" in printed
     # A missing prediction file is an error naming it.
     (tmp_path / "pred/label_2/c.txt").unlink()
     assert main([*argv, "--preset", "tiny"]) == 1

@@ -7,7 +7,8 @@ footprints; otherwise the label boxes are rasterised). Predictions: ``<pred>/lab
 with the score column, and ``<pred>/mask_2/<id>.png`` whose id k + 1 is the object on line k
 (the panoptic map; without it the predicted boxes are rasterised). Each prediction line is one
 AP detection with its mask from the map; the map itself is the panoptic prediction.
-Frames: the ids of ``<gt>/<split>.txt``, or every ground-truth label file.
+Frames: the ids of ``<gt>/<split>.txt``, or every ground-truth label file. Under the table it
+prints the class confusion at mask IoU 0.5 (``metrics.class_confusion``), also in the JSON.
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ import numpy as np
 
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.metrics import Evaluator
+
+CONFUSION_IOU = 0.5  # mask IoU of the printed class confusion (AP@0.50's matches)
 
 
 @functools.partial(jax.jit, static_argnames="grid")
@@ -58,6 +61,19 @@ def evaluate_folders(
 ) -> dict:
     """All metrics between a ground-truth and a prediction folder.
 
+    ``folder_evaluator(...).compute()``; see there for the arguments.
+
+    Returns:
+      ``Evaluator.compute()``'s dict.
+    """
+    return folder_evaluator(gt_root, pred_root, config, split).compute()
+
+
+def folder_evaluator(
+    gt_root: str | Path, pred_root: str | Path, config: Config, split: str | None = None
+) -> Evaluator:
+    """An ``Evaluator`` holding every frame of a ground-truth and a prediction folder.
+
     Args:
       gt_root: KITTI-layout ground truth.
       pred_root: KITTI-layout predictions (label_2 with scores, optional mask_2).
@@ -65,7 +81,7 @@ def evaluate_folders(
       split: frame list ``<gt_root>/<split>.txt``; None: every ground-truth label file.
 
     Returns:
-      ``Evaluator.compute()``'s dict.
+      The filled ``Evaluator`` (``compute()``, ``confusion()``).
 
     Raises:
       kitti.DatasetError: a missing or malformed file (the message names it).
@@ -95,7 +111,7 @@ def evaluate_folders(
             gt_panoptic=(gt_ids, np.concatenate([[k], gt.classes])),
             pred_panoptic=(pred_ids, np.concatenate([[k], pred.classes])),
         )
-    return evaluator.compute()
+    return evaluator
 
 
 def to_json(results: dict) -> str:
@@ -114,19 +130,26 @@ def to_json(results: dict) -> str:
 def eval_command(args: argparse.Namespace) -> int:
     """Entry point of ``indoorbev eval``: prints the per-class table, optionally writes JSON."""
     from indoorbev_jax.data import kitti
-    from indoorbev_jax.metrics import format_table
+    from indoorbev_jax.metrics import confusion_json, format_confusion, format_table
 
     config = Config.preset(args.preset)
     try:
-        results = evaluate_folders(args.gt, args.pred, config, args.split)
+        evaluator = folder_evaluator(args.gt, args.pred, config, args.split)
     except kitti.DatasetError as e:
         print(f"error: {e}")
         return 1
+    results, confusion = evaluator.compute(), evaluator.confusion(CONFUSION_IOU)
     print(f"ground truth {args.gt}, predictions {args.pred} (preset {config.name})")
     print(format_table(results))
+    print(f"\nconfusion at mask IoU {CONFUSION_IOU:g} (rows: ground truth, columns: found as)")
+    print(format_confusion(confusion, config.data.class_names))
     if args.json:
+        payload = json.loads(to_json(results))
+        payload[f"confusion@{CONFUSION_IOU:g}"] = confusion_json(
+            confusion, config.data.class_names, CONFUSION_IOU
+        )
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(to_json(results) + "\n")
+        Path(args.json).write_text(json.dumps(payload, indent=2) + "\n")
         print(f"metrics written to {args.json}")
     return 0
 

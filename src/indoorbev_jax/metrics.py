@@ -366,6 +366,16 @@ def format_confusion(confusion: np.ndarray, class_names: Sequence[str] = CLASS_N
     return "\n".join(lines)
 
 
+def confusion_json(confusion: np.ndarray, class_names: Sequence[str], iou_threshold: float):
+    """``class_confusion``'s matrix as a JSON-ready dict with its row and column names."""
+    return {
+        "iou_threshold": float(iou_threshold),
+        "rows": list(class_names),
+        "columns": [*class_names, "missed"],
+        "counts": np.asarray(confusion).tolist(),
+    }
+
+
 # --------------------------------------------------------------------------- panoptic
 
 
