@@ -352,6 +352,7 @@ def class_confusion(
 
 def format_confusion(confusion: np.ndarray, class_names: Sequence[str] = CLASS_NAMES) -> str:
     """``class_confusion``'s matrix as a printable table, one row per ground-truth class."""
+    confusion = np.asarray(confusion)
     names = [n[:7] for n in class_names] + ["missed"]
     if confusion.shape != (len(class_names), len(class_names) + 1):
         raise ValueError(
