@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -104,7 +105,7 @@ def front_order(keep: jax.Array) -> jax.Array:
     def scatter(d):
         return jnp.zeros(r, jnp.int32).at[d].set(index, unique_indices=True)
 
-    flat = dest.reshape(-1, r)
+    flat = dest.reshape(math.prod(keep.shape[:-1]), r)  # also for R = 0
     return jax.vmap(scatter)(flat).reshape(keep.shape)
 
 

@@ -311,7 +311,7 @@ def test_class_confusion_hand_example():
     assert text.splitlines()[1].split() == ["Table", "0", "0", "1", "0"]
     with pytest.raises(ValueError, match="expected shape \\(2, 3\\)"):
         format_confusion(expected, ["Table", "Chair"])
-    with pytest.raises(ValueError, match="iou_thresholds"):
+    with pytest.raises(ValueError, match="iou_threshold: expected a value in"):
         class_confusion(gts, dets, 1.5, num_classes=3)
 
 

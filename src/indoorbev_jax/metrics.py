@@ -295,7 +295,9 @@ def mask_ap(
 def _confusion_from_frames(
     frames: Sequence[_APFrame], iou_threshold: float, num_classes: int, max_dets: int = 100
 ) -> np.ndarray:
-    (thr,) = _check_thresholds((iou_threshold,))
+    thr = float(iou_threshold)
+    if not 0.0 <= thr <= 1.0:
+        raise ValueError(f"iou_threshold: expected a value in [0, 1], got {iou_threshold!r}")
     iou, det_cls, _, gt_cls = _stack_frames(frames)
     active = (det_cls >= 0) & (np.arange(det_cls.shape[1]) < max_dets)
     match = _greedy_match(iou, active, thr)  # class-agnostic: iou is not masked by class

@@ -118,7 +118,9 @@ def test_padding_instance_ids_and_filters(frames):
 
 
 @pytest.mark.parametrize(
-    ("shape", "p_keep"), [((3, 20000), 0.7), ((2, 5, 33), 0.1), ((1, 1), 1.0), ((2, 64), 0.0)]
+    ("shape", "p_keep"),
+    [((3, 20000), 0.7), ((2, 5, 33), 0.1), ((1, 1), 1.0), ((2, 64), 0.0), ((2, 0), 0.5)]
+    + [((7,), 0.5)],
 )
 def test_front_order_equals_stable_argsort(shape, p_keep):
     keep = jnp.asarray(np.random.default_rng(len(shape)).random(shape) < p_keep)
