@@ -23,8 +23,8 @@ from pathlib import Path
 import jax
 
 from indoorbev_jax.config import ConfigError
-from indoorbev_jax.evaluate import CONFUSION_IOU, to_json
-from indoorbev_jax.metrics import Evaluator, confusion_json, format_confusion, format_table
+from indoorbev_jax.evaluate import report
+from indoorbev_jax.metrics import Evaluator
 from indoorbev_jax.predict import load_model
 from indoorbev_jax.train import make_predict_fn
 
@@ -78,22 +78,16 @@ def main(argv=None) -> None:
     evaluator = evaluate_sim(
         config, params, args.split, args.frames, args.batch, args.seed, not args.no_progress
     )
-    results, confusion = evaluator.compute(), evaluator.confusion(CONFUSION_IOU)
+    text, payload = report(evaluator, config.data.class_names)
     print(
         f"model {args.model} (preset {config.name}), {args.frames} simulated '{args.split}' "
         f"frames, seed {args.seed}, score threshold {config.inference.score_threshold}, "
         f"{time.perf_counter() - start:.0f} s"
     )
-    print(format_table(results))
-    print(f"\nconfusion at mask IoU {CONFUSION_IOU:g} (rows: ground truth, columns: found as)")
-    print(format_confusion(confusion, config.data.class_names))
+    print(text)
     if args.json:
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)
-        payload = json.loads(to_json(results))
-        payload[f"confusion@{CONFUSION_IOU:g}"] = confusion_json(
-            confusion, config.data.class_names, CONFUSION_IOU
-        )
         payload["setup"] = {"model": str(args.model), "split": args.split,
                             "frames": args.frames, "seed": args.seed,
                             "score_threshold": config.inference.score_threshold}  # fmt: skip

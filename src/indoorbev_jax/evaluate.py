@@ -127,10 +127,29 @@ def to_json(results: dict) -> str:
     return json.dumps(clean(results), indent=2)
 
 
-def eval_command(args: argparse.Namespace) -> int:
-    """Entry point of ``indoorbev eval``: prints the per-class table, optionally writes JSON."""
-    from indoorbev_jax.data import kitti
+def report(evaluator: Evaluator, class_names) -> tuple[str, dict]:
+    """What both evaluation commands print and write for the frames an ``Evaluator`` holds.
+
+    Returns:
+      (the per-class table and the class confusion at ``CONFUSION_IOU`` as printable text,
+      the same as a JSON-ready dict: ``compute()``'s metrics plus ``"confusion@0.5"``).
+    """
     from indoorbev_jax.metrics import confusion_json, format_confusion, format_table
+
+    results, confusion = evaluator.compute(), evaluator.confusion(CONFUSION_IOU)
+    text = "\n".join([
+        format_table(results), "",
+        f"confusion at mask IoU {CONFUSION_IOU:g} (rows: ground truth, columns: found as)",
+        format_confusion(confusion, class_names),
+    ])  # fmt: skip
+    payload = json.loads(to_json(results))
+    payload[f"confusion@{CONFUSION_IOU:g}"] = confusion_json(confusion, class_names, CONFUSION_IOU)
+    return text, payload
+
+
+def eval_command(args: argparse.Namespace) -> int:
+    """Entry point of ``indoorbev eval``: prints ``report``'s text, optionally writes its JSON."""
+    from indoorbev_jax.data import kitti
 
     config = Config.preset(args.preset)
     try:
@@ -138,16 +157,10 @@ def eval_command(args: argparse.Namespace) -> int:
     except kitti.DatasetError as e:
         print(f"error: {e}")
         return 1
-    results, confusion = evaluator.compute(), evaluator.confusion(CONFUSION_IOU)
+    text, payload = report(evaluator, config.data.class_names)
     print(f"ground truth {args.gt}, predictions {args.pred} (preset {config.name})")
-    print(format_table(results))
-    print(f"\nconfusion at mask IoU {CONFUSION_IOU:g} (rows: ground truth, columns: found as)")
-    print(format_confusion(confusion, config.data.class_names))
+    print(text)
     if args.json:
-        payload = json.loads(to_json(results))
-        payload[f"confusion@{CONFUSION_IOU:g}"] = confusion_json(
-            confusion, config.data.class_names, CONFUSION_IOU
-        )
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(payload, indent=2) + "\n")
         print(f"metrics written to {args.json}")

@@ -132,6 +132,13 @@ def _ap_frame(gt, det, index: int, num_classes: int) -> _APFrame:
     )
 
 
+def _ap_frames(gts, dets, num_classes: int) -> list[_APFrame]:
+    """``_ap_frame`` of every frame of ``mask_ap``-style inputs."""
+    if len(gts) != len(dets):
+        raise ValueError(f"gts and dets: {len(gts)} vs {len(dets)} frames")
+    return [_ap_frame(g, d, i, num_classes) for i, (g, d) in enumerate(zip(gts, dets, strict=True))]
+
+
 def _greedy_match(iou: np.ndarray, active: np.ndarray, threshold: float) -> np.ndarray:
     """COCO's greedy matching for all frames at once.
 
@@ -284,11 +291,7 @@ def mask_ap(
         det = (np.ones((1, 4, 4), bool), np.array([0]), np.array([0.9]))
         mask_ap([gt], [det])["ap"]  # {0.25: 1.0, 0.5: 1.0}
     """
-    if len(gts) != len(dets):
-        raise ValueError(f"gts and dets: {len(gts)} vs {len(dets)} frames")
-    frames = [
-        _ap_frame(g, d, i, num_classes) for i, (g, d) in enumerate(zip(gts, dets, strict=True))
-    ]
+    frames = _ap_frames(gts, dets, num_classes)
     return _ap_from_frames(frames, iou_thresholds, num_classes, max_dets)
 
 
@@ -344,11 +347,7 @@ def class_confusion(
         det = (np.ones((1, 4, 4), bool), np.array([2]), np.array([0.9]))
         class_confusion([gt], [det], num_classes=3)  # [[0, 0, 1, 0], [0, 0, 0, 0], [0, 0, 0, 0]]
     """
-    if len(gts) != len(dets):
-        raise ValueError(f"gts and dets: {len(gts)} vs {len(dets)} frames")
-    frames = [
-        _ap_frame(g, d, i, num_classes) for i, (g, d) in enumerate(zip(gts, dets, strict=True))
-    ]
+    frames = _ap_frames(gts, dets, num_classes)
     return _confusion_from_frames(frames, iou_threshold, num_classes, max_dets)
 
 
