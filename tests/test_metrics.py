@@ -313,6 +313,10 @@ def test_class_confusion_hand_example():
         format_confusion(expected, ["Table", "Chair"])
     with pytest.raises(ValueError, match="iou_threshold: expected a value in"):
         class_confusion(gts, dets, 1.5, num_classes=3)
+    with pytest.raises(ValueError, match="gts and dets: 1 vs 0 frames"):
+        class_confusion(gts, [], num_classes=3)
+    with pytest.raises(ValueError, match=r"dets\[0\]: class ids must lie in 0..2"):
+        class_confusion(gts, [(dets[0][0], np.array([0, 3]), dets[0][2])], num_classes=3)
 
 
 # --------------------------------------------------------------------------- panoptic
