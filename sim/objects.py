@@ -111,6 +111,21 @@ def variant_key(class_id: int, variant: int) -> str:
 ALL_VARIANTS: tuple[str, ...] = tuple(
     variant_key(c, v) for c in range(NUM_CLASSES) for v in range(len(CLASSES[c].variants))
 )
+_VARIANT_OFFSET = np.cumsum([0] + [len(c.variants) for c in CLASSES])[:-1]
+
+
+def variant_ids(classes, variants) -> np.ndarray:
+    """Index into ``ALL_VARIANTS`` of objects given their class and per-class variant ids.
+
+    Args:
+      classes, variants: int arrays of one shape (e.g. ``Targets.classes``, ``FrameInfo.variant``).
+
+    Returns:
+      int64 of that shape; -1 where ``variants`` is -1 (padding).
+    """
+    classes, variants = np.asarray(classes), np.asarray(variants)
+    ids = _VARIANT_OFFSET[np.clip(classes, 0, NUM_CLASSES - 1)] + variants
+    return np.where(variants >= 0, ids, -1).astype(np.int64)
 
 
 @struct.dataclass

@@ -497,6 +497,40 @@ def random_targets(rng):
                    instance_ids=ids)  # fmt: skip
 
 
+@pytest.mark.parametrize("threshold", [0.25, 0.5])
+def test_tag_confusion_counts_matches_by_tag(threshold):
+    gts, dets = random_frames(2)
+    rng = np.random.default_rng(7)
+    num_tags = 2 * NUM_CLASSES  # tag t belongs to class t // 2, as variants to their class
+    ev = Evaluator()
+    h, w = gts[0][0].shape[1:]
+    empty = (np.zeros((h, w), np.int32), np.array([NUM_CLASSES]))
+    tagged = []
+    for gt, det in zip(gts, dets, strict=True):
+        tags = 2 * gt[1] + rng.integers(0, 2, len(gt[1]))
+        ev.add_frame(gt, det, empty, empty, gt_tags=tags)
+        keep = gt[0].any((1, 2))  # the Evaluator leaves empty masks out
+        tagged.append((gt[0][keep], tags[keep]))
+    ours = ev.tag_confusion(num_tags, threshold)
+    # pycocotools' class-agnostic matches with the tags as the ground-truth categories.
+    ref = coco_confusion_reference(tagged, dets, threshold, num_classes=num_tags)
+    np.testing.assert_array_equal(ours[:, :NUM_CLASSES], ref[:, :NUM_CLASSES])
+    np.testing.assert_array_equal(ours[:, NUM_CLASSES], ref[:, num_tags])
+    # Same matches as the class confusion: a class's tag rows sum to its row.
+    by_class = ours.reshape(NUM_CLASSES, 2, NUM_CLASSES + 1).sum(1)
+    np.testing.assert_array_equal(by_class, ev.confusion(threshold))
+    assert ours[1::2].sum() > 0 and ours[::2].sum() > 0
+    top = max(int(t.max()) for _, t in tagged if t.size)
+    with pytest.raises(ValueError, match=f"tag {top} but num_tags is {top}"):
+        ev.tag_confusion(top)
+    ev.add_frame(gts[0], dets[0], empty, empty)
+    with pytest.raises(ValueError, match=r"frames \[60\] were added without gt_tags"):
+        ev.tag_confusion(num_tags)
+    i = next(i for i, (_, gc) in enumerate(gts) if len(gc))
+    with pytest.raises(ValueError, match="gt_tags must be"):
+        ev.add_frame(gts[i], dets[i], empty, empty, gt_tags=-np.ones(len(gts[i][1]), int))
+
+
 def predictions_from(logits, masks):
     z = np.zeros(logits.shape[:-1] + (3,), np.float32)
     return Predictions(logits=logits, dims=z, pos=z, yaw=z[..., :1], masks=masks)

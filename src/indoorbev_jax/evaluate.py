@@ -127,24 +127,36 @@ def to_json(results: dict) -> str:
     return json.dumps(clean(results), indent=2)
 
 
-def report(evaluator: Evaluator, class_names) -> tuple[str, dict]:
+def report(evaluator: Evaluator, class_names, tag_names=None, tag_title="") -> tuple[str, dict]:
     """What both evaluation commands print and write for the frames an ``Evaluator`` holds.
+
+    Args:
+      evaluator: the filled ``Evaluator``.
+      class_names: its classes.
+      tag_names: names of the ``gt_tags`` the frames were added with (e.g. object variants);
+        None: no tags. With names, a second confusion counts objects per tag.
+      tag_title: what the tags are, for that table's heading.
 
     Returns:
       (the per-class table and the class confusion at ``CONFUSION_IOU`` as printable text,
-      the same as a JSON-ready dict: ``compute()``'s metrics plus ``"confusion@0.5"``).
+      the same as a JSON-ready dict: ``compute()``'s metrics plus ``"confusion@0.5"``, and
+      ``"tag_confusion@0.5"`` with tags).
     """
     from indoorbev_jax.metrics import confusion_json, format_confusion, format_table
 
     results, confusion = evaluator.compute(), evaluator.confusion(CONFUSION_IOU)
-    text = "\n".join([
-        format_table(results), "",
-        f"confusion at mask IoU {CONFUSION_IOU:g} (rows: ground truth, columns: found as)",
-        format_confusion(confusion, class_names),
-    ])  # fmt: skip
+    head = f"confusion at mask IoU {CONFUSION_IOU:g} (rows: ground truth, columns: found as)"
+    text = [format_table(results), "", head, format_confusion(confusion, class_names)]
     payload = json.loads(to_json(results))
     payload[f"confusion@{CONFUSION_IOU:g}"] = confusion_json(confusion, class_names, CONFUSION_IOU)
-    return text, payload
+    if tag_names is not None:
+        by_tag = evaluator.tag_confusion(len(tag_names), CONFUSION_IOU)
+        text += ["", f"{head}, {tag_title}", format_confusion(by_tag, class_names, tag_names)]
+        payload[f"tag_confusion@{CONFUSION_IOU:g}"] = {
+            "tags": tag_title,
+            **confusion_json(by_tag, class_names, CONFUSION_IOU, tag_names),
+        }
+    return "\n".join(text), payload
 
 
 def eval_command(args: argparse.Namespace) -> int:

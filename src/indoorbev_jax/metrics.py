@@ -296,21 +296,36 @@ def mask_ap(
 
 
 def _confusion_from_frames(
-    frames: Sequence[_APFrame], iou_threshold: float, num_classes: int, max_dets: int = 100
+    frames: Sequence[_APFrame],
+    iou_threshold: float,
+    num_classes: int,
+    max_dets: int = 100,
+    rows: tuple[Sequence[np.ndarray], int] | None = None,
 ) -> np.ndarray:
+    """Class-agnostic matches counted by (row, detected class or missed).
+
+    ``rows``: ``(per-frame row ids [G], number of rows)`` to count ground truths by something
+    other than their class (e.g. the simulator's object variant); None: by class.
+    """
     thr = float(iou_threshold)
     if not 0.0 <= thr <= 1.0:
         raise ValueError(f"iou_threshold: expected a value in [0, 1], got {iou_threshold!r}")
     iou, det_cls, _, gt_cls = _stack_frames(frames)
+    num_rows = num_classes
+    if rows is not None:
+        row_ids, num_rows = rows
+        gt_cls = np.full(gt_cls.shape, -2, np.int64)  # the same padding as _stack_frames
+        for i, r in enumerate(row_ids):
+            gt_cls[i, : len(r)] = r
     active = (det_cls >= 0) & (np.arange(det_cls.shape[1]) < max_dets)
     match = _greedy_match(iou, active, thr)  # class-agnostic: iou is not masked by class
-    confusion = np.zeros((num_classes, num_classes + 1), np.int64)
+    confusion = np.zeros((num_rows, num_classes + 1), np.int64)
     f, d = np.nonzero(match >= 0)
     np.add.at(confusion, (gt_cls[f, match[f, d]], det_cls[f, d]), 1)
     found = np.zeros(gt_cls.shape, bool)
     found[f, match[f, d]] = True
     missed = gt_cls[(gt_cls >= 0) & ~found]
-    confusion[:, num_classes] = np.bincount(missed, minlength=num_classes)
+    confusion[:, num_classes] = np.bincount(missed, minlength=num_rows)
     return confusion
 
 
@@ -351,28 +366,41 @@ def class_confusion(
     return _confusion_from_frames(frames, iou_threshold, num_classes, max_dets)
 
 
-def format_confusion(confusion: np.ndarray, class_names: Sequence[str] = CLASS_NAMES) -> str:
-    """``class_confusion``'s matrix as a printable table, one row per ground-truth class."""
+def format_confusion(
+    confusion: np.ndarray,
+    class_names: Sequence[str] = CLASS_NAMES,
+    row_names: Sequence[str] | None = None,
+) -> str:
+    """``class_confusion``'s matrix as a printable table, one row per ground-truth class.
+
+    ``row_names``: names of the rows when they are not the classes (``Evaluator.tag_confusion``).
+    """
     confusion = np.asarray(confusion)
     names = [n[:7] for n in class_names] + ["missed"]
-    if confusion.shape != (len(class_names), len(class_names) + 1):
+    rows = [n[:7] for n in class_names] if row_names is None else list(row_names)
+    if confusion.shape != (len(rows), len(class_names) + 1):
         raise ValueError(
-            f"confusion: expected shape {(len(class_names), len(class_names) + 1)} for "
-            f"{len(class_names)} class names, got {confusion.shape}"
+            f"confusion: expected shape {(len(rows), len(class_names) + 1)} for "
+            f"{len(rows)} rows and {len(class_names)} class names, got {confusion.shape}"
         )
     corner = "gt \\ det"
-    width = max(len(n) for n in [*names, corner])
+    width = max(len(n) for n in [*rows, corner])
     lines = [f"{corner:<{width}} " + " ".join(f"{n:>7}" for n in names)]
-    for name, row in zip(names[:-1], confusion, strict=True):
+    for name, row in zip(rows, confusion, strict=True):
         lines.append(f"{name:<{width}} " + " ".join(f"{int(v):>7}" for v in row))
     return "\n".join(lines)
 
 
-def confusion_json(confusion: np.ndarray, class_names: Sequence[str], iou_threshold: float):
+def confusion_json(
+    confusion: np.ndarray,
+    class_names: Sequence[str],
+    iou_threshold: float,
+    row_names: Sequence[str] | None = None,
+):
     """``class_confusion``'s matrix as a JSON-ready dict with its row and column names."""
     return {
         "iou_threshold": float(iou_threshold),
-        "rows": list(class_names),
+        "rows": list(class_names if row_names is None else row_names),
         "columns": [*class_names, "missed"],
         "counts": np.asarray(confusion).tolist(),
     }
@@ -614,6 +642,7 @@ class Evaluator:
 
     def reset(self) -> None:
         self._ap_frames: list[_APFrame] = []
+        self._gt_tags: list[np.ndarray | None] = []
         self._panoptic = _PanopticStats(self.num_classes, self.miou_match_iou)
 
     @property
@@ -631,12 +660,14 @@ class Evaluator:
 
         self.add_output(panoptic_inference(predictions, self.inference), targets)
 
-    def add_output(self, output, targets) -> None:
+    def add_output(self, output, targets, gt_tags=None) -> None:
         """Adds B frames whose inference already ran (e.g. inside a jitted eval step).
 
         Args:
           output: ``inference.PanopticOutput`` of B frames.
           targets: ``types.Targets`` of the same B frames.
+          gt_tags: optional int [B, M], a group id >= 0 per valid target (e.g. the simulator's
+            object variant) for ``tag_confusion``.
         """
         out = {f.name: np.asarray(getattr(output, f.name)) for f in dataclasses.fields(output)}
         classes = np.asarray(targets.classes)
@@ -648,6 +679,9 @@ class Evaluator:
                 f"targets.instance_ids {ids.shape} and predicted maps "
                 f"{out['instance_ids'].shape} differ in shape"
             )
+        tags = None if gt_tags is None else np.asarray(gt_tags)
+        if tags is not None and tags.shape != classes.shape:
+            raise ValueError(f"gt_tags: expected shape {classes.shape} (targets), got {tags.shape}")
         for i in range(classes.shape[0]):
             dv = out["det_valid"][i]
             self.add_frame(
@@ -660,9 +694,10 @@ class Evaluator:
                     ),
                 ),
                 pred_panoptic=(out["instance_ids"][i], out["instance_classes"][i]),
+                gt_tags=None if tags is None else tags[i][valid[i]],
             )
 
-    def add_frame(self, gt, det, gt_panoptic, pred_panoptic) -> None:
+    def add_frame(self, gt, det, gt_panoptic, pred_panoptic, gt_tags=None) -> None:
         """Adds one frame given as numpy masks (the formats of ``mask_ap``/``panoptic_quality``).
 
         Empty masks are not objects: ground truths and detections whose mask has no cell are
@@ -674,17 +709,26 @@ class Evaluator:
           det: ``(masks bool [D, H, W], classes [D], scores [D])``.
           gt_panoptic: ``(instance_ids [H, W], instance_classes [K + 1])``.
           pred_panoptic: the same for the prediction.
+          gt_tags: optional int [M], a group id >= 0 per ground truth for ``tag_confusion``.
         """
         gm, gc = (np.asarray(x) for x in gt)
         dm, dc, ds = (np.asarray(x) for x in det)
         g_keep = gm.reshape(len(gm), math.prod(gm.shape[1:])).any(1)  # [M]
         d_keep = dm.reshape(len(dm), math.prod(dm.shape[1:])).any(1)  # [D]
         index = self.num_frames
+        if gt_tags is not None:
+            gt_tags = np.asarray(gt_tags).astype(np.int64)
+            if gt_tags.shape != gc.shape or (gt_tags.size and gt_tags.min() < 0):
+                raise ValueError(
+                    f"frame {index}: gt_tags must be {gc.shape[0]} ids >= 0, got {gt_tags}"
+                )
+            gt_tags = gt_tags[g_keep]
         self._ap_frames.append(
             _ap_frame((gm[g_keep], gc[g_keep]), (dm[d_keep], dc[d_keep], ds[d_keep]), index,
                       self.num_classes)
         )  # fmt: skip
         self._panoptic.add(gt_panoptic, pred_panoptic, index)
+        self._gt_tags.append(gt_tags)
 
     def compute(self) -> dict:
         """All metrics over the frames added so far.
@@ -707,6 +751,29 @@ class Evaluator:
     def confusion(self, iou_threshold: float = 0.5) -> np.ndarray:
         """``class_confusion`` over the frames added so far (int64 [K, K + 1])."""
         return _confusion_from_frames(self._ap_frames, iou_threshold, self.num_classes)
+
+    def tag_confusion(self, num_tags: int, iou_threshold: float = 0.5) -> np.ndarray:
+        """``confusion`` with ground truths counted by their ``gt_tags`` instead of their class.
+
+        The matches are ``confusion``'s, so summing the rows of the tags of one class gives that
+        class's row there.
+
+        Returns:
+          int64 [num_tags, K + 1]: entry [t, d] counts objects tagged t found as class d; the
+          last column those found by no mask.
+
+        Raises:
+          ValueError: a frame was added without tags, or a tag is not below ``num_tags``.
+        """
+        missing = [i for i, t in enumerate(self._gt_tags) if t is None]
+        if missing:
+            raise ValueError(f"tag_confusion: frames {missing[:5]} were added without gt_tags")
+        top = max((int(t.max()) for t in self._gt_tags if t.size), default=-1)
+        if top >= num_tags:
+            raise ValueError(f"tag_confusion: tag {top} but num_tags is {num_tags}")
+        return _confusion_from_frames(
+            self._ap_frames, iou_threshold, self.num_classes, rows=(self._gt_tags, num_tags)
+        )
 
     def table(self, results: dict | None = None) -> str:
         """The per-class table of ``compute()`` (or of ``results``) as printable text."""

@@ -98,6 +98,14 @@ def test_splits_hold_out_plans_and_variants(sampled):
     assert scenes.allowed_variants(CFG.sim, "test")[trolley]
 
 
+def test_variant_ids_index_all_variants():
+    pairs = [(c, v) for c, spec in enumerate(objects.CLASSES) for v in range(len(spec.variants))]
+    classes, variants = np.array(pairs).T
+    ids = objects.variant_ids(classes, variants)
+    assert [objects.ALL_VARIANTS[i] for i in ids] == [objects.variant_key(c, v) for c, v in pairs]
+    np.testing.assert_array_equal(objects.variant_ids([[0, 8]], [[-1, -1]]), [[-1, -1]])
+
+
 def test_plans_are_fixed_geometry():
     a = layouts.make_room(5, 8)
     b = layouts.make_room(5, 8)
