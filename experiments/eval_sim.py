@@ -11,6 +11,12 @@ Prints the per-class table and the class confusion at mask IoU 0.5 (which class 
 was detected as, or missed; ``metrics.class_confusion``), then the same counts per object
 variant (``Class/variant``, held-out variants marked ``*``), so a held-out shape's errors are
 not mistaken for its class's; writes all of it as JSON (``--json``).
+
+Threshold sweeps: ``--score-threshold`` and ``--mask-threshold`` take comma lists; every
+combination is scored on the same frames in one pass (one simulation and one network
+forward per batch), and a line of means per combination is printed instead of the tables
+(the JSON holds each combination's full report under ``"sweep"``). Pick thresholds on
+``--split val``, then store them with ``export_model.py``.
 The numbers are measured on simulated data: they are not the paper's real-world measurement.
 """
 
@@ -18,17 +24,18 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
+import math
 import time
 from pathlib import Path
 
 import jax
 
-from indoorbev_jax.config import ConfigError
+from indoorbev_jax.config import ConfigError, InferenceConfig
 from indoorbev_jax.evaluate import report
 from indoorbev_jax.metrics import Evaluator
 from indoorbev_jax.predict import load_model
-from indoorbev_jax.train import make_predict_fn
 
 TEST_SEED = 1_000_003  # root seed of the held-out test set (training uses train.seed, 0)
 
@@ -39,23 +46,80 @@ def evaluate_sim(config, params, split: str, frames: int, batch: int, seed: int,
     The targets are tagged with their ``indoorbev_sim.objects.ALL_VARIANTS`` index
     (``Evaluator.tag_confusion``).
     """
+    return evaluate_sim_sweep(
+        config, params, split, frames, batch, seed, [config.inference], progress
+    )[0]
+
+
+def evaluate_sim_sweep(
+    config, params, split: str, frames: int, batch: int, seed: int, inferences, progress=True
+) -> list[Evaluator]:
+    """``evaluate_sim`` for several inference settings on the same frames, in one pass.
+
+    Args:
+      inferences: ``InferenceConfig`` per evaluator (``config.inference`` is not used).
+
+    Returns:
+      One ``Evaluator`` per entry of ``inferences``, each equal to ``evaluate_sim`` with
+      that ``config.inference``.
+    """
     from indoorbev_sim.generate import jitted_generate
     from indoorbev_sim.objects import variant_ids
     from tqdm import tqdm
 
+    from indoorbev_jax.inference import panoptic_inference
+    from indoorbev_jax.models import IndoorBEV
+
     if frames % batch:
         raise ValueError(f"--frames {frames} must be a multiple of --batch {batch}")
-    generate = jitted_generate(config, split, batch)
-    predict_fn = make_predict_fn(config)
-    evaluator = Evaluator(config.inference, class_names=config.data.class_names)
+    inferences = tuple(inferences)
+    # The simulation does not read the thresholds: one compiled generator for all of them.
+    sim_config = dataclasses.replace(config, inference=InferenceConfig())
+    generate = jitted_generate(sim_config, split, batch)
+    model = IndoorBEV(config)
+
+    @jax.jit
+    def predict(params, points, valid):
+        predictions = model.apply(params, points, valid)
+        return tuple(panoptic_inference(predictions, inference) for inference in inferences)
+
+    names = config.data.class_names
+    evaluators = [Evaluator(inference, class_names=names) for inference in inferences]
     root = jax.random.key(seed)
     for k in tqdm(range(frames // batch), disable=not progress, unit="batch"):
         data, info = generate(jax.random.fold_in(root, k))
         tags = variant_ids(data.targets.classes, info.variant)
-        evaluator.add_output(
-            predict_fn(params, data.points, data.point_valid), data.targets, gt_tags=tags
+        outputs = predict(params, data.points, data.point_valid)
+        for evaluator, output in zip(evaluators, outputs, strict=True):
+            evaluator.add_output(output, data.targets, gt_tags=tags)
+    return evaluators
+
+
+def _thresholds(text: str) -> tuple[float, ...]:
+    """argparse type: one threshold or a comma list."""
+    try:
+        return tuple(float(t) for t in text.split(","))
+    except ValueError:
+        msg = f"expected numbers separated by commas, got {text!r}"
+        raise argparse.ArgumentTypeError(msg) from None
+
+
+def _percent(v: float) -> str:
+    return "-" if math.isnan(v) or v < 0 else f"{100 * v:.1f}"  # AP: -1, others: NaN
+
+
+def sweep_table(rows: list[tuple[InferenceConfig, dict]]) -> str:
+    """One line of means (in %) per inference setting of a sweep."""
+    head = ["score", "mask", "AP@0.25", "AP@0.50", "PQ", "SQ", "RQ", "mIoU", "semIoU"]
+    lines = [" ".join(f"{h:>8}" for h in head)]
+    for inference, r in rows:
+        values = [r["ap"][0.25], r["ap"][0.5], r["pq"], r["sq"], r["rq"], r["miou"],
+                  r["semantic_miou"]]  # fmt: skip
+        lines.append(
+            f"{inference.score_threshold:>8g} {inference.mask_threshold:>8g} "
+            + " ".join(f"{_percent(v):>8}" for v in values)
         )
-    return evaluator
+    return "\n".join(lines)
 
 
 def main(argv=None) -> None:
@@ -68,9 +132,15 @@ def main(argv=None) -> None:
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument(
         "--score-threshold",
-        type=float,
+        type=_thresholds,
         default=None,
-        help="inference.score_threshold (default: the model's, 0.8 as in the paper)",
+        help="inference.score_threshold, or a comma list to sweep (default: the model's)",
+    )
+    p.add_argument(
+        "--mask-threshold",
+        type=_thresholds,
+        default=None,
+        help="inference.mask_threshold, or a comma list to sweep (default: the model's)",
     )
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
@@ -78,34 +148,52 @@ def main(argv=None) -> None:
         config, params = load_model(args.model)
     except (OSError, ValueError) as e:
         p.exit(2, f"eval_sim: {e}\n")
-    if args.score_threshold is not None:
+    scores = args.score_threshold or (config.inference.score_threshold,)
+    masks = args.mask_threshold or (config.inference.mask_threshold,)
+    inferences = []
+    for score, mask in itertools.product(scores, masks):
         try:  # InferenceConfig checks the range
-            inference = dataclasses.replace(config.inference, score_threshold=args.score_threshold)
+            inferences.append(
+                dataclasses.replace(config.inference, score_threshold=score, mask_threshold=mask)
+            )
         except ConfigError as e:
             p.error(str(e))
-        config = dataclasses.replace(config, inference=inference)
     start = time.perf_counter()
-    evaluator = evaluate_sim(
-        config, params, args.split, args.frames, args.batch, args.seed, not args.no_progress
-    )
+    evaluators = evaluate_sim_sweep(
+        config, params, args.split, args.frames, args.batch, args.seed, inferences,
+        not args.no_progress,
+    )  # fmt: skip
     from indoorbev_sim.objects import ALL_VARIANTS
 
     held_out = set(config.sim.test_variants)
     names = [f"{v}*" if v in held_out else v for v in ALL_VARIANTS]
     title = "per object variant (* held out of train and val)"
-    text, payload = report(evaluator, config.data.class_names, names, title)
-    print(
-        f"model {args.model} (preset {config.name}), {args.frames} simulated '{args.split}' "
-        f"frames, seed {args.seed}, score threshold {config.inference.score_threshold}, "
-        f"{time.perf_counter() - start:.0f} s"
-    )
-    print(text)
+    setup = {"model": str(args.model), "split": args.split, "frames": args.frames,
+             "seed": args.seed}  # fmt: skip
+    sweep = []
+    for inference, evaluator in zip(inferences, evaluators, strict=True):
+        text, payload = report(evaluator, config.data.class_names, names, title)
+        setting = {"score_threshold": inference.score_threshold,
+                   "mask_threshold": inference.mask_threshold}  # fmt: skip
+        sweep.append((inference, text, {**setting, **payload}))
+    head = f"model {args.model} (preset {config.name}), {args.frames} simulated '{args.split}' " \
+        f"frames, seed {args.seed}"  # fmt: skip
+    seconds = f"{time.perf_counter() - start:.0f} s"
+    if len(sweep) == 1:
+        inference, text, payload = sweep[0]
+        print(f"{head}, score threshold {inference.score_threshold}, mask threshold "
+              f"{inference.mask_threshold}, {seconds}")  # fmt: skip
+        print(text)
+        payload = {**payload, "setup": {**setup, "score_threshold": inference.score_threshold,
+                                        "mask_threshold": inference.mask_threshold}}  # fmt: skip
+    else:
+        print(f"{head}, {len(sweep)} threshold settings, {seconds}")
+        results = [ev.compute() for ev in evaluators]
+        print(sweep_table(list(zip(inferences, results, strict=True))))
+        payload = {"setup": setup, "sweep": [entry for _, _, entry in sweep]}
     if args.json:
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)
-        payload["setup"] = {"model": str(args.model), "split": args.split,
-                            "frames": args.frames, "seed": args.seed,
-                            "score_threshold": config.inference.score_threshold}  # fmt: skip
         path.write_text(json.dumps(payload, indent=2) + "\n")
         print(f"metrics written to {path}")
 

@@ -30,11 +30,19 @@ def main(argv=None) -> None:
         help="inference.score_threshold stored in the file (default: the run's); pick it on "
         "the validation split (experiments/eval_sim.py --split val)",
     )
+    p.add_argument(
+        "--mask-threshold",
+        type=float,
+        default=None,
+        help="inference.mask_threshold stored in the file (default: the run's)",
+    )
     args = p.parse_args(argv)
     config, params = load_params(args.run, args.which)
-    if args.score_threshold is not None:
+    chosen = {"score_threshold": args.score_threshold, "mask_threshold": args.mask_threshold}
+    chosen = {k: v for k, v in chosen.items() if v is not None}
+    if chosen:
         try:
-            inference = dataclasses.replace(config.inference, score_threshold=args.score_threshold)
+            inference = dataclasses.replace(config.inference, **chosen)
         except ConfigError as e:
             p.error(str(e))
         config = dataclasses.replace(config, inference=inference)
@@ -45,7 +53,8 @@ def main(argv=None) -> None:
     if not same:
         raise SystemExit(f"{path}: parameters did not read back unchanged")
     print(f"{args.run} ({args.which}, preset {config.name}, {count:,} parameters, score "
-          f"threshold {config.inference.score_threshold}) -> {path} "
+          f"threshold {config.inference.score_threshold}, mask threshold "
+          f"{config.inference.mask_threshold}) -> {path} "
           f"({path.stat().st_size / 2**20:.1f} MiB)")  # fmt: skip
 
 

@@ -70,7 +70,42 @@ def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tm
         export.main(["run", "--out", str(out), "--score-threshold", "1.5"])
     assert exit_info.value.code == 2 and not out.exists()
     assert "inference.score_threshold': must lie in [0, 1]" in capsys.readouterr().err
-    export.main(["run", "--out", str(out), "--score-threshold", "0.3"])
+    export.main(["run", "--out", str(out), "--score-threshold", "0.3", "--mask-threshold", "0.4"])
     config, back = load_model(out)
-    assert config.inference.score_threshold == 0.3
+    assert (config.inference.score_threshold, config.inference.mask_threshold) == (0.3, 0.4)
     np.testing.assert_array_equal(back["params"]["w"], params["params"]["w"])
+
+
+def test_eval_sim_sweep_equals_one_evaluation_per_setting(tmp_path, capsys):
+    import dataclasses
+    import json
+
+    import jax
+    import numpy as np
+    from indoorbev_sim.objects import ALL_VARIANTS
+
+    from indoorbev_jax.config import InferenceConfig
+    from indoorbev_jax.evaluate import to_json
+    from indoorbev_jax.predict import export_model
+    from indoorbev_jax.train import init_state
+
+    eval_sim = _script("eval_sim")
+    config = Config.tiny()
+    params = init_state(config, jax.random.key(0)).params
+    model = export_model(params, config, tmp_path / "m.msgpack")
+    out = tmp_path / "sweep.json"
+    argv = ["--model", str(model), "--frames", "2", "--batch", "2", "--seed", "5", "--json"]
+    eval_sim.main([*argv, str(out), "--score-threshold", "0,0.1", "--mask-threshold", "0.5,0.4"])
+    printed = capsys.readouterr().out
+    assert "4 threshold settings" in printed and "    0.1      0.4" in printed
+    sweep = json.loads(out.read_text())["sweep"]
+    metrics = [{k: v for k, v in e.items() if not k.endswith("threshold")} for e in sweep]
+    assert metrics[0] != metrics[3]  # the settings matter
+    for entry in sweep:
+        inference = InferenceConfig(entry["score_threshold"], entry["mask_threshold"])
+        one = eval_sim.evaluate_sim(
+            dataclasses.replace(config, inference=inference), params, "test", 2, 2, 5, False
+        )
+        assert {**entry, **json.loads(to_json(one.compute()))} == entry
+        tags = one.tag_confusion(len(ALL_VARIANTS))
+        np.testing.assert_array_equal(entry["tag_confusion@0.5"]["counts"], tags)
