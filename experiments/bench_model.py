@@ -49,7 +49,11 @@ from indoorbev_jax import host_memory
 from indoorbev_jax.config import Config
 from indoorbev_jax.models import IndoorBEV
 
-PEER_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "peers")
+# INDOORBEV_PEER_DIR: where the peer lies when ../shared is not beside the checkout (a GPU
+# machine gets only the repository, so experiments/gpu_rows.sh copies it in).
+PEER_DIR = os.environ.get("INDOORBEV_PEER_DIR") or os.path.join(
+    os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "peers"
+)
 N_POINTS = 20000
 
 
@@ -128,32 +132,62 @@ def build_jax(cfg: Config, mode: str, batch: int, dtype):
     return run, compile_s, mem_bytes, n_params
 
 
-def build_peer(preset: str, mode: str, batch: int, up_mode: str):
-    """The peer's step (``torch_indoorbev.bench``'s step) on our inputs."""
+def build_peer(preset: str, mode: str, batch: int, up_mode: str, bf16: bool = False):
+    """The peer's step (``torch_indoorbev.bench``'s step) on our inputs.
+
+    On the GPU when JAX runs on one and torch sees CUDA (each timed run then ends with a
+    ``torch.cuda.synchronize``); ``bf16`` is CUDA autocast there, as ``--bf16`` is for ours.
+    """
+    import contextlib
+
     sys.path.insert(0, PEER_DIR)
     import torch
     import torch_indoorbev as peer
 
     torch.set_num_threads(2)
-    model = peer.build(preset, up_mode=up_mode)
+    cuda = jax.devices()[0].platform == "gpu" and torch.cuda.is_available()
+    device = torch.device("cuda" if cuda else "cpu")
+    model = peer.build(preset, up_mode=up_mode).to(device)
     cfg = Config.preset(preset)
-    pts, valid = (torch.from_numpy(a) for a in make_inputs(cfg, batch))
+    pts, valid = (torch.from_numpy(a).to(device) for a in make_inputs(cfg, batch))
+
+    def autocast():
+        if bf16 and cuda:
+            return torch.autocast("cuda", dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    def sync():
+        if cuda:
+            torch.cuda.synchronize()
+
     if mode == "train":
         model.train()
         opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
 
         def run():
             opt.zero_grad(set_to_none=True)
-            peer.dummy_loss(model(pts, valid)).backward()
+            with autocast():
+                loss = peer.dummy_loss(model(pts, valid))
+            loss.backward()
             opt.step()
+            sync()
     else:
         model.eval()
 
         def run():
-            with torch.inference_mode():
+            with torch.inference_mode(), autocast():
                 peer.dummy_loss(model(pts, valid))
+            sync()
 
-    return run, sum(p.numel() for p in model.parameters())
+    return run, sum(p.numel() for p in model.parameters()), str(device)
+
+
+def _peer_gpu_peak_gib() -> float | None:
+    """torch's peak CUDA allocation, None where the peer did not run on a GPU."""
+    torch = sys.modules.get("torch")
+    if torch is None or not torch.cuda.is_available() or not torch.cuda.is_initialized():
+        return None
+    return torch.cuda.max_memory_allocated() / 2**30
 
 
 def _peak_rss_gib() -> float:
@@ -168,7 +202,9 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=5, help="0: compile and memory only")
     ap.add_argument("--warmup", type=int, default=1)
     ap.add_argument("--set", action="append", default=[], help="config override a.b=v")
-    ap.add_argument("--bf16", action="store_true", help="bfloat16 computation (ours)")
+    ap.add_argument(
+        "--bf16", action="store_true", help="bfloat16 computation (ours; the peer's on a GPU)"
+    )
     ap.add_argument("--peer", default="convT2", help="comma list of peer up_modes, or none")
     ap.add_argument("--only", default="both", choices=["both", "jax", "torch"])
     ap.add_argument(
@@ -209,9 +245,9 @@ def main(argv=None):
     for up_mode in peers:
         if a.preset == "tiny":
             raise SystemExit("the peer has no tiny preset")
-        run, n = build_peer(a.preset, a.mode, a.batch, up_mode)
+        run, n, device = build_peer(a.preset, a.mode, a.batch, up_mode, a.bf16)
         runners[f"torch[{up_mode}]"] = run
-        print(f"{label}: torch[{up_mode}] params {n / 1e6:.3f} M", flush=True)
+        print(f"{label}: torch[{up_mode}] params {n / 1e6:.3f} M on {device}", flush=True)
 
     if a.reps == 0:  # compile and memory figures only
         return
@@ -238,6 +274,9 @@ def main(argv=None):
         f"{label}: peak RSS of this process {_peak_rss_gib():.2f} GiB "
         f"(sides: {', '.join(runners)}), load average {os.getloadavg()[0]:.1f}"
     )
+    peer_gpu = _peer_gpu_peak_gib()
+    if peer_gpu is not None:
+        print(f"{label}: torch peak CUDA memory allocated {peer_gpu:.2f} GiB")
 
 
 if __name__ == "__main__":
