@@ -15,7 +15,8 @@ not mistaken for its class's; writes all of it as JSON (``--json``).
 Threshold sweeps: ``--score-threshold`` and ``--mask-threshold`` take comma lists; every
 combination is scored on the same frames in one pass (one simulation and one network
 forward per batch), and a line of means per combination is printed instead of the tables
-(the JSON holds each combination's full report under ``"sweep"``). Pick thresholds on
+(``--tables``: and each combination's tables; the JSON holds each combination's full report
+under ``"sweep"``). Pick thresholds on
 ``--split val``, then store them with ``export_model.py``.
 The numbers are measured on simulated data: they are not the paper's real-world measurement.
 """
@@ -142,6 +143,11 @@ def main(argv=None) -> None:
         default=None,
         help="inference.mask_threshold, or a comma list to sweep (default: the model's)",
     )
+    p.add_argument(
+        "--tables",
+        action="store_true",
+        help="with a sweep, also print every setting's tables (default: the means only)",
+    )
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     try:
@@ -190,6 +196,9 @@ def main(argv=None) -> None:
         print(f"{head}, {len(sweep)} threshold settings, {seconds}")
         results = [ev.compute() for ev in evaluators]
         print(sweep_table(list(zip(inferences, results, strict=True))))
+        for inference, text, _ in sweep if args.tables else ():
+            print(f"\nscore threshold {inference.score_threshold}, mask threshold "
+                  f"{inference.mask_threshold}:\n{text}")  # fmt: skip
         payload = {"setup": setup, "sweep": [entry for _, _, entry in sweep]}
     if args.json:
         path = Path(args.json)

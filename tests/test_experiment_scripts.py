@@ -95,9 +95,11 @@ def test_eval_sim_sweep_equals_one_evaluation_per_setting(tmp_path, capsys):
     model = export_model(params, config, tmp_path / "m.msgpack")
     out = tmp_path / "sweep.json"
     argv = ["--model", str(model), "--frames", "2", "--batch", "2", "--seed", "5", "--json"]
-    eval_sim.main([*argv, str(out), "--score-threshold", "0,0.1", "--mask-threshold", "0.5,0.4"])
+    sweep = ["--score-threshold", "0,0.1", "--mask-threshold", "0.5,0.4", "--tables"]
+    eval_sim.main([*argv, str(out), *sweep])
     printed = capsys.readouterr().out
     assert "4 threshold settings" in printed and "    0.1      0.4" in printed
+    assert printed.count("per object variant") == 4 and "Misc/trolley*" in printed
     sweep = json.loads(out.read_text())["sweep"]
     metrics = [{k: v for k, v in e.items() if not k.endswith("threshold")} for e in sweep]
     assert metrics[0] != metrics[3]  # the settings matter
