@@ -27,7 +27,6 @@ import argparse
 import dataclasses
 import itertools
 import json
-import math
 import time
 from pathlib import Path
 
@@ -35,7 +34,7 @@ import jax
 
 from indoorbev_jax.config import ConfigError, InferenceConfig
 from indoorbev_jax.evaluate import report
-from indoorbev_jax.metrics import Evaluator
+from indoorbev_jax.metrics import Evaluator, format_percent
 from indoorbev_jax.predict import load_model
 
 TEST_SEED = 1_000_003  # root seed of the held-out test set (training uses train.seed, 0)
@@ -105,20 +104,16 @@ def _thresholds(text: str) -> tuple[float, ...]:
         raise argparse.ArgumentTypeError(msg) from None
 
 
-def _percent(v: float) -> str:
-    return "-" if math.isnan(v) or v < 0 else f"{100 * v:.1f}"  # AP: -1, others: NaN
-
-
 def sweep_table(rows: list[tuple[InferenceConfig, dict]]) -> str:
-    """One line of means (in %) per inference setting of a sweep."""
+    """One line of means (in %) per inference setting of a sweep, from ``report``'s JSON dicts."""
     head = ["score", "mask", "AP@0.25", "AP@0.50", "PQ", "SQ", "RQ", "mIoU", "semIoU"]
     lines = [" ".join(f"{h:>8}" for h in head)]
     for inference, r in rows:
-        values = [r["ap"][0.25], r["ap"][0.5], r["pq"], r["sq"], r["rq"], r["miou"],
+        values = [r["ap"]["0.25"], r["ap"]["0.5"], r["pq"], r["sq"], r["rq"], r["miou"],
                   r["semantic_miou"]]  # fmt: skip
         lines.append(
             f"{inference.score_threshold:>8g} {inference.mask_threshold:>8g} "
-            + " ".join(f"{_percent(v):>8}" for v in values)
+            + " ".join(f"{format_percent(v):>8}" for v in values)
         )
     return "\n".join(lines)
 
@@ -194,8 +189,7 @@ def main(argv=None) -> None:
                                         "mask_threshold": inference.mask_threshold}}  # fmt: skip
     else:
         print(f"{head}, {len(sweep)} threshold settings, {seconds}")
-        results = [ev.compute() for ev in evaluators]
-        print(sweep_table(list(zip(inferences, results, strict=True))))
+        print(sweep_table([(inference, entry) for inference, _, entry in sweep]))
         for inference, text, _ in sweep if args.tables else ():
             print(f"\nscore threshold {inference.score_threshold}, mask threshold "
                   f"{inference.mask_threshold}:\n{text}")  # fmt: skip

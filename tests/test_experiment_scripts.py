@@ -55,6 +55,14 @@ def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, caps
             eval_sim.main(["--model", str(path), "--score-threshold", bad])
         assert exit_info.value.code == 2
         assert "inference.score_threshold': must lie in [0, 1]" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        eval_sim.main(["--model", str(path), "--score-threshold", "0.3,x"])
+    assert exit_info.value.code == 2
+    assert "expected numbers separated by commas, got '0.3,x'" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        eval_sim.main(["--model", str(path), "--mask-threshold", "0.5,2"])
+    assert exit_info.value.code == 2
+    assert "inference.mask_threshold': must lie in [0, 1]" in capsys.readouterr().err
 
 
 def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tmp_path, capsys):

@@ -566,6 +566,8 @@ def test_evaluator_equals_metric_functions_on_inference_output():
     assert res["miou"] == pytest.approx(ref["miou"], nan_ok=True)
     assert res["semantic_miou"] == pytest.approx(ref["semantic_miou"], nan_ok=True)
     np.testing.assert_array_equal(ev.confusion(0.5), class_confusion(gts_ap, dets_ap, 0.5))
+    with pytest.raises(ValueError, match="gt_tags: expected shape"):
+        ev.add_output(out, targets, gt_tags=np.zeros((B, 1), int))
     table = ev.table(res)
     assert all(name in table for name in CLASS_NAMES) and "AP@0.25" in table
     assert len(table.splitlines()) == NUM_CLASSES + 3

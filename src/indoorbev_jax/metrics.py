@@ -803,8 +803,8 @@ def combine_results(ap, pan, miou, sem, class_names: Sequence[str], num_frames: 
     }
 
 
-def _fmt(v: float) -> str:
-    # AP uses -1 (pycocotools) and the rest NaN for "undefined".
+def format_percent(v: float | None) -> str:
+    """A metric in % with one decimal; "-" where undefined (AP's -1, NaN, or JSON's null)."""
     return "-" if v is None or math.isnan(v) or v < 0 else f"{100 * v:.1f}"
 
 
@@ -820,13 +820,13 @@ def format_table(results: dict) -> str:
     width = max([len(n) for n in per_class] + [5])
     lines = [f"{'class':<{width}} {'#gt':>6} " + " ".join(f"{h:>8}" for h in heads)]
     for name, row in per_class.items():
-        vals = " ".join(f"{_fmt(row[c]):>8}" for c in cols)
+        vals = " ".join(f"{format_percent(row[c]):>8}" for c in cols)
         lines.append(f"{name:<{width}} {row['num_gt']:>6} {vals}")
     means = {f"ap@{t:g}": v for t, v in results["ap"].items()}
     means.update({k: results[k] for k in ("pq", "sq", "rq", "miou")})
     means["semantic_iou"] = results["semantic_miou"]
     total = sum(row["num_gt"] for row in per_class.values())
-    vals = " ".join(f"{_fmt(means.get(c, math.nan)):>8}" for c in cols)
+    vals = " ".join(f"{format_percent(means.get(c, math.nan)):>8}" for c in cols)
     lines.append(f"{'mean':<{width}} {total:>6} {vals}")
     lines.append(f"frames: {results['num_frames']}")
     return "\n".join(lines)
