@@ -10,7 +10,9 @@ so the set is the same on every run and machine (up to float rounding of the sim
 Prints the per-class table and the class confusion at mask IoU 0.5 (which class each object
 was detected as, or missed; ``metrics.class_confusion``), then the same counts per object
 variant (``Class/variant``, held-out variants marked ``*``), so a held-out shape's errors are
-not mistaken for its class's; writes all of it as JSON (``--json``).
+not mistaken for its class's, and the objects found and missed by their number of lidar
+points, their KITTI occlusion level and their distance from the sensor (``BREAKDOWNS``), so a
+miss rate can be put down to the data or to the model; writes all of it as JSON (``--json``).
 
 Threshold sweeps: ``--score-threshold`` and ``--mask-threshold`` take comma lists; every
 combination is scored on the same frames in one pass (one simulation and one network
@@ -31,6 +33,7 @@ import time
 from pathlib import Path
 
 import jax
+import numpy as np
 
 from indoorbev_jax.config import ConfigError, InferenceConfig
 from indoorbev_jax.evaluate import report
@@ -38,13 +41,43 @@ from indoorbev_jax.metrics import Evaluator, format_percent
 from indoorbev_jax.predict import load_model
 
 TEST_SEED = 1_000_003  # root seed of the held-out test set (training uses train.seed, 0)
+POINT_EDGES = (10, 30, 100, 300)  # lidar returns on the object
+RANGE_EDGES = (2.0, 3.0, 4.0, 5.0)  # metres from the sensor to the box centre, in the BEV plane
+OCCLUSION_NAMES = ("0 (>=75% seen)", "1 (40-75%)", "2 (<40%)", "3 (no primitive seen)")
+
+
+def _interval_names(edges, unit: str) -> tuple[str, ...]:
+    """Row names of ``np.digitize(x, edges)``: ``<a``, ``[a, b)``, ..., ``>=z``."""
+    inner = [f"[{a:g}, {b:g}){unit}" for a, b in itertools.pairwise(edges)]
+    return (f"<{edges[0]:g}{unit}", *inner, f">={edges[-1]:g}{unit}")
+
+
+# (gt_tags grouping, row names, heading) of the found/missed tables eval_sim prints.
+BREAKDOWNS = (
+    ("points", _interval_names(POINT_EDGES, ""), "by lidar points on the object"),
+    ("occlusion", OCCLUSION_NAMES, "by KITTI occlusion level (share of primitives seen)"),
+    ("range", _interval_names(RANGE_EDGES, " m"), "by distance from the sensor"),
+)
+
+
+def frame_tags(targets, info) -> dict[str, np.ndarray]:
+    """``gt_tags`` groupings of B simulated frames: ``"variant"`` and each of ``BREAKDOWNS``."""
+    from indoorbev_sim.objects import variant_ids
+
+    pos = np.asarray(targets.pos)
+    return {
+        "variant": np.asarray(variant_ids(targets.classes, info.variant)),
+        "points": np.digitize(np.asarray(info.num_points), POINT_EDGES),
+        "occlusion": np.asarray(info.occlusion),
+        "range": np.digitize(np.hypot(pos[..., 0], pos[..., 1]), RANGE_EDGES),
+    }
 
 
 def evaluate_sim(config, params, split: str, frames: int, batch: int, seed: int, progress=True):
     """An ``Evaluator`` holding ``params``' outputs on ``frames`` simulated frames of ``split``.
 
-    The targets are tagged with their ``indoorbev_sim.objects.ALL_VARIANTS`` index
-    (``Evaluator.tag_confusion``).
+    The targets are tagged with ``frame_tags`` (``Evaluator.tag_confusion(..., grouping=)``):
+    ``"variant"`` is the ``indoorbev_sim.objects.ALL_VARIANTS`` index.
     """
     return evaluate_sim_sweep(
         config, params, split, frames, batch, seed, [config.inference], progress
@@ -64,7 +97,6 @@ def evaluate_sim_sweep(
       that ``config.inference``.
     """
     from indoorbev_sim.generate import jitted_generate
-    from indoorbev_sim.objects import variant_ids
     from tqdm import tqdm
 
     from indoorbev_jax.inference import panoptic_inference
@@ -88,7 +120,7 @@ def evaluate_sim_sweep(
     root = jax.random.key(seed)
     for k in tqdm(range(frames // batch), disable=not progress, unit="batch"):
         data, info = generate(jax.random.fold_in(root, k))
-        tags = variant_ids(data.targets.classes, info.variant)
+        tags = frame_tags(data.targets, info)
         outputs = predict(params, data.points, data.point_valid)
         for evaluator, output in zip(evaluators, outputs, strict=True):
             evaluator.add_output(output, data.targets, gt_tags=tags)
@@ -173,7 +205,10 @@ def main(argv=None) -> None:
              "seed": args.seed}  # fmt: skip
     sweep = []
     for inference, evaluator in zip(inferences, evaluators, strict=True):
-        text, payload = report(evaluator, config.data.class_names, names, title)
+        text, payload = report(
+            evaluator, config.data.class_names, names, title, tag_grouping="variant",
+            breakdowns=BREAKDOWNS,
+        )  # fmt: skip
         setting = {"score_threshold": inference.score_threshold,
                    "mask_threshold": inference.mask_threshold}  # fmt: skip
         sweep.append((inference, text, {**setting, **payload}))

@@ -117,5 +117,28 @@ def test_eval_sim_sweep_equals_one_evaluation_per_setting(tmp_path, capsys):
             dataclasses.replace(config, inference=inference), params, "test", 2, 2, 5, False
         )
         assert {**entry, **json.loads(to_json(one.compute()))} == entry
-        tags = one.tag_confusion(len(ALL_VARIANTS))
+        tags = one.tag_confusion(len(ALL_VARIANTS), grouping="variant")
         np.testing.assert_array_equal(entry["tag_confusion@0.5"]["counts"], tags)
+        # Every breakdown regroups the same matches: equal column totals.
+        loose = one.tag_confusion(len(ALL_VARIANTS), 0.25, grouping="variant")
+        for grouping, names, _ in eval_sim.BREAKDOWNS:
+            for iou, ref in (("0.5", tags), ("0.25", loose)):
+                counts = np.array(entry[f"breakdowns@{iou}"][grouping]["counts"])
+                assert counts.shape == (len(names), len(config.data.class_names) + 1)
+                np.testing.assert_array_equal(counts.sum(0), ref.sum(0))
+    assert printed.count("objects no mask found, by lidar points on the object") == 4
+    # Row totals re-derived from the simulator's own per-object point counts and positions.
+    from indoorbev_sim.generate import jitted_generate
+
+    data, info = jitted_generate(config, "test", 2)(jax.random.fold_in(jax.random.key(5), 0))
+    keep = np.asarray(data.targets.valid) & np.asarray(data.targets.masks).any((2, 3))
+    points = np.asarray(info.num_points)[keep]
+    by_points = np.array(sweep[0]["breakdowns@0.5"]["points"]["counts"]).sum(1)
+    expected = [np.sum(points < 10), np.sum((points >= 10) & (points < 30)),
+                np.sum((points >= 30) & (points < 100)), np.sum((points >= 100) & (points < 300)),
+                np.sum(points >= 300)]  # fmt: skip
+    np.testing.assert_array_equal(by_points, expected)
+    xy = np.asarray(data.targets.pos)[keep][:, :2]
+    by_range = np.array(sweep[0]["breakdowns@0.5"]["range"]["counts"]).sum(1)
+    dist = np.sqrt((xy**2).sum(1))
+    np.testing.assert_array_equal(by_range, np.histogram(dist, [0, 2, 3, 4, 5, np.inf])[0])

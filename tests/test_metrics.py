@@ -14,6 +14,7 @@ from indoorbev_jax.metrics import (
     Evaluator,
     class_confusion,
     format_confusion,
+    format_found,
     mask_ap,
     mask_intersections,
     panoptic_quality,
@@ -529,6 +530,46 @@ def test_tag_confusion_counts_matches_by_tag(threshold):
     i = next(i for i, (_, gc) in enumerate(gts) if len(gc))
     with pytest.raises(ValueError, match="gt_tags must be"):
         ev.add_frame(gts[i], dets[i], empty, empty, gt_tags=-np.ones(len(gts[i][1]), int))
+
+
+def test_named_tag_groupings_share_the_matches():
+    gts, dets = random_frames(2)
+    rng = np.random.default_rng(8)
+    h, w = gts[0][0].shape[1:]
+    empty = (np.zeros((h, w), np.int32), np.array([NUM_CLASSES]))
+    alone, named = Evaluator(), Evaluator()
+    for gt, det in zip(gts, dets, strict=True):
+        variant = 2 * gt[1] + rng.integers(0, 2, len(gt[1]))
+        alone.add_frame(gt, det, empty, empty, gt_tags=variant)
+        size = rng.integers(0, 3, len(gt[1]))
+        named.add_frame(gt, det, empty, empty, gt_tags={"variant": variant, "size": size})
+    by_variant = named.tag_confusion(2 * NUM_CLASSES, 0.5, grouping="variant")
+    np.testing.assert_array_equal(by_variant, alone.tag_confusion(2 * NUM_CLASSES, 0.5))
+    by_size = named.tag_confusion(3, 0.5, grouping="size")
+    np.testing.assert_array_equal(by_size.sum(0), named.confusion(0.5).sum(0))
+    assert by_size.sum() == sum(int(g[0].any((1, 2)).sum()) for g in gts)
+    with pytest.raises(ValueError, match=r"without gt_tags\['weight'\]"):
+        named.tag_confusion(3, grouping="weight")
+    with pytest.raises(ValueError, match="without gt_tags$"):
+        named.tag_confusion(3)
+    i = next(i for i, (_, gc) in enumerate(gts) if len(gc))
+    bad = {"variant": np.zeros(len(gts[i][1]), int), "size": -np.ones(len(gts[i][1]), int)}
+    with pytest.raises(ValueError, match=r"gt_tags\['size'\] must be"):
+        named.add_frame(gts[i], dets[i], empty, empty, gt_tags=bad)
+
+
+def test_format_found_counts_each_row():
+    loose = np.array([[5, 1, 2], [0, 0, 0], [0, 2, 0]])  # 2 classes + missed column
+    tight = np.array([[3, 1, 4], [0, 0, 0], [0, 2, 0]])
+    lines = format_found({0.25: loose, 0.5: tight}, ["near", "mid", "far"]).splitlines()
+    assert lines[0].split() == ["group", "objects", "miss@0.25", "%", "miss@0.5", "%"]
+    assert lines[1].split() == ["near", "8", "2", "25.0", "4", "50.0"]
+    assert lines[2].split() == ["mid", "0", "0", "-", "0", "-"]
+    assert lines[3].split() == ["far", "2", "0", "0.0", "0", "0.0"]
+    with pytest.raises(ValueError, match="at IoU 0.5: expected 2 rows"):
+        format_found({0.5: tight}, ["near", "mid"])
+    with pytest.raises(ValueError, match="row totals differ"):
+        format_found({0.25: loose, 0.5: tight[[0, 2, 1]]}, ["near", "mid", "far"])
 
 
 def predictions_from(logits, masks):

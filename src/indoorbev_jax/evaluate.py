@@ -23,7 +23,7 @@ import jax
 import numpy as np
 
 from indoorbev_jax.config import Config, GridConfig
-from indoorbev_jax.metrics import Evaluator
+from indoorbev_jax.metrics import DEFAULT_GROUPING, Evaluator
 
 CONFUSION_IOU = 0.5  # mask IoU of the printed class confusion (AP@0.50's matches)
 
@@ -127,7 +127,15 @@ def to_json(results: dict) -> str:
     return json.dumps(clean(results), indent=2)
 
 
-def report(evaluator: Evaluator, class_names, tag_names=None, tag_title="") -> tuple[str, dict]:
+def report(
+    evaluator: Evaluator,
+    class_names,
+    tag_names=None,
+    tag_title="",
+    *,
+    tag_grouping: str = DEFAULT_GROUPING,
+    breakdowns=(),
+) -> tuple[str, dict]:
     """What both evaluation commands print and write for the frames an ``Evaluator`` holds.
 
     Args:
@@ -136,26 +144,41 @@ def report(evaluator: Evaluator, class_names, tag_names=None, tag_title="") -> t
       tag_names: names of the ``gt_tags`` the frames were added with (e.g. object variants);
         None: no tags. With names, a second confusion counts objects per tag.
       tag_title: what the tags are, for that table's heading.
+      tag_grouping: which named grouping of ``gt_tags`` those tags are.
+      breakdowns: ``(grouping, row names, title)`` per further grouping of ``gt_tags``
+        printed as objects and misses per group at each of the evaluator's IoU thresholds
+        (``metrics.format_found``), e.g. by the number of lidar points on the object.
 
     Returns:
       (the per-class table and the class confusion at ``CONFUSION_IOU`` as printable text,
-      the same as a JSON-ready dict: ``compute()``'s metrics plus ``"confusion@0.5"``, and
-      ``"tag_confusion@0.5"`` with tags).
+      the same as a JSON-ready dict: ``compute()``'s metrics plus ``"confusion@0.5"``,
+      ``"tag_confusion@0.5"`` with tags and ``"breakdowns@<iou>"`` (by grouping) with
+      breakdowns).
     """
-    from indoorbev_jax.metrics import confusion_json, format_confusion, format_table
+    from indoorbev_jax.metrics import confusion_json, format_confusion, format_found, format_table
 
-    results, confusion = evaluator.compute(), evaluator.confusion(CONFUSION_IOU)
-    head = f"confusion at mask IoU {CONFUSION_IOU:g} (rows: ground truth, columns: found as)"
+    iou = CONFUSION_IOU
+    results, confusion = evaluator.compute(), evaluator.confusion(iou)
+    head = f"confusion at mask IoU {iou:g} (rows: ground truth, columns: found as)"
     text = [format_table(results), "", head, format_confusion(confusion, class_names)]
     payload = json.loads(to_json(results))
-    payload[f"confusion@{CONFUSION_IOU:g}"] = confusion_json(confusion, class_names, CONFUSION_IOU)
+    payload[f"confusion@{iou:g}"] = confusion_json(confusion, class_names, iou)
     if tag_names is not None:
-        by_tag = evaluator.tag_confusion(len(tag_names), CONFUSION_IOU)
+        by_tag = evaluator.tag_confusion(len(tag_names), iou, grouping=tag_grouping)
         text += ["", f"{head}, {tag_title}", format_confusion(by_tag, class_names, tag_names)]
-        payload[f"tag_confusion@{CONFUSION_IOU:g}"] = {
+        payload[f"tag_confusion@{iou:g}"] = {
             "tags": tag_title,
-            **confusion_json(by_tag, class_names, CONFUSION_IOU, tag_names),
+            **confusion_json(by_tag, class_names, iou, tag_names),
         }
+    for grouping, names, title in breakdowns:
+        by_iou = {t: evaluator.tag_confusion(len(names), t, grouping=grouping)
+                  for t in evaluator.iou_thresholds}  # fmt: skip
+        text += ["", f"objects no mask found, {title}", format_found(by_iou, names)]
+        for t, counts in by_iou.items():
+            payload.setdefault(f"breakdowns@{t:g}", {})[grouping] = {
+                "title": title,
+                **confusion_json(counts, class_names, t, names),
+            }
     return "\n".join(text), payload
 
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -391,6 +391,41 @@ def format_confusion(
     return "\n".join(lines)
 
 
+def format_found(confusions: Mapping[float, np.ndarray], row_names: Sequence[str]) -> str:
+    """Objects per row and how many no mask found, at each IoU threshold of ``confusions``.
+
+    For groupings that mix classes (e.g. objects by their number of lidar points), where
+    only found or missed means something; a miss at 0.5 that is found at 0.25 is a coarse
+    mask, one missed at both is not detected.
+
+    Args:
+      confusions: ``{iou_threshold: confusion [len(row_names), K + 1]}`` of the same objects
+        (``Evaluator.tag_confusion``); the last column counts the missed.
+      row_names: one per row.
+    """
+    items = [(float(t), np.asarray(c)) for t, c in confusions.items()]
+    for t, c in items:
+        if c.ndim != 2 or len(c) != len(row_names):
+            raise ValueError(
+                f"confusion at IoU {t:g}: expected {len(row_names)} rows (one per name), got "
+                f"shape {c.shape}"
+            )
+    totals = items[0][1].sum(1)
+    if any(not np.array_equal(c.sum(1), totals) for _, c in items):
+        raise ValueError("confusions: row totals differ, so they do not count the same objects")
+    width = max(len(n) for n in [*row_names, "group"])
+    head = ["objects"] + [h for t, _ in items for h in (f"miss@{t:g}", "%")]
+    lines = [f"{'group':<{width}} {head[0]:>7}" + "".join(f" {h:>9}" for h in head[1:])]
+    for r, name in enumerate(row_names):
+        total = int(totals[r])
+        cells = []
+        for _, c in items:
+            missed = int(c[r, -1])
+            cells += [str(missed), f"{100 * missed / total:.1f}" if total else "-"]
+        lines.append(f"{name:<{width}} {total:>7}" + "".join(f" {v:>9}" for v in cells))
+    return "\n".join(lines)
+
+
 def confusion_json(
     confusion: np.ndarray,
     class_names: Sequence[str],
@@ -608,6 +643,22 @@ def semantic_miou(gts, preds, *, num_classes: int = NUM_CLASSES) -> dict:
 
 # --------------------------------------------------------------------------- evaluator
 
+DEFAULT_GROUPING = "tag"  # the name of ``gt_tags`` given as one array
+
+
+def _tag_groupings(gt_tags) -> dict[str, np.ndarray] | None:
+    """``gt_tags`` (None, one array or a dict of arrays) as a dict of arrays by grouping."""
+    if gt_tags is None:
+        return None
+    if isinstance(gt_tags, Mapping):
+        return {str(k): np.asarray(v) for k, v in gt_tags.items()}
+    return {DEFAULT_GROUPING: np.asarray(gt_tags)}
+
+
+def _tags_name(grouping: str) -> str:
+    """How errors name a grouping's tags."""
+    return "gt_tags" if grouping == DEFAULT_GROUPING else f"gt_tags[{grouping!r}]"
+
 
 class Evaluator:
     """Accumulates frames of model outputs and targets; ``compute`` returns every metric.
@@ -642,7 +693,7 @@ class Evaluator:
 
     def reset(self) -> None:
         self._ap_frames: list[_APFrame] = []
-        self._gt_tags: list[np.ndarray | None] = []
+        self._gt_tags: list[dict[str, np.ndarray] | None] = []
         self._panoptic = _PanopticStats(self.num_classes, self.miou_match_iou)
 
     @property
@@ -667,7 +718,8 @@ class Evaluator:
           output: ``inference.PanopticOutput`` of B frames.
           targets: ``types.Targets`` of the same B frames.
           gt_tags: optional int [B, M], a group id >= 0 per valid target (e.g. the simulator's
-            object variant) for ``tag_confusion``.
+            object variant) for ``tag_confusion``; or a dict of such arrays, one per named
+            grouping (``tag_confusion(..., grouping=name)``).
         """
         out = {f.name: np.asarray(getattr(output, f.name)) for f in dataclasses.fields(output)}
         classes = np.asarray(targets.classes)
@@ -679,9 +731,12 @@ class Evaluator:
                 f"targets.instance_ids {ids.shape} and predicted maps "
                 f"{out['instance_ids'].shape} differ in shape"
             )
-        tags = None if gt_tags is None else np.asarray(gt_tags)
-        if tags is not None and tags.shape != classes.shape:
-            raise ValueError(f"gt_tags: expected shape {classes.shape} (targets), got {tags.shape}")
+        tags = _tag_groupings(gt_tags)
+        for name, t in (tags or {}).items():
+            if t.shape != classes.shape:
+                raise ValueError(
+                    f"{_tags_name(name)}: expected shape {classes.shape} (targets), got {t.shape}"
+                )
         for i in range(classes.shape[0]):
             dv = out["det_valid"][i]
             self.add_frame(
@@ -694,7 +749,7 @@ class Evaluator:
                     ),
                 ),
                 pred_panoptic=(out["instance_ids"][i], out["instance_classes"][i]),
-                gt_tags=None if tags is None else tags[i][valid[i]],
+                gt_tags=None if tags is None else {k: t[i][valid[i]] for k, t in tags.items()},
             )
 
     def add_frame(self, gt, det, gt_panoptic, pred_panoptic, gt_tags=None) -> None:
@@ -709,20 +764,22 @@ class Evaluator:
           det: ``(masks bool [D, H, W], classes [D], scores [D])``.
           gt_panoptic: ``(instance_ids [H, W], instance_classes [K + 1])``.
           pred_panoptic: the same for the prediction.
-          gt_tags: optional int [M], a group id >= 0 per ground truth for ``tag_confusion``.
+          gt_tags: optional int [M], a group id >= 0 per ground truth for ``tag_confusion``,
+            or a dict of them by grouping name.
         """
         gm, gc = (np.asarray(x) for x in gt)
         dm, dc, ds = (np.asarray(x) for x in det)
         g_keep = gm.reshape(len(gm), math.prod(gm.shape[1:])).any(1)  # [M]
         d_keep = dm.reshape(len(dm), math.prod(dm.shape[1:])).any(1)  # [D]
         index = self.num_frames
-        if gt_tags is not None:
-            gt_tags = np.asarray(gt_tags).astype(np.int64)
-            if gt_tags.shape != gc.shape or (gt_tags.size and gt_tags.min() < 0):
+        gt_tags = _tag_groupings(gt_tags)
+        for name, tags in (gt_tags or {}).items():
+            tags = tags.astype(np.int64)
+            if tags.shape != gc.shape or (tags.size and tags.min() < 0):
                 raise ValueError(
-                    f"frame {index}: gt_tags must be {gc.shape[0]} ids >= 0, got {gt_tags}"
+                    f"frame {index}: {_tags_name(name)} must be {gc.shape[0]} ids >= 0, got {tags}"
                 )
-            gt_tags = gt_tags[g_keep]
+            gt_tags[name] = tags[g_keep]
         self._ap_frames.append(
             _ap_frame((gm[g_keep], gc[g_keep]), (dm[d_keep], dc[d_keep], ds[d_keep]), index,
                       self.num_classes)
@@ -752,11 +809,19 @@ class Evaluator:
         """``class_confusion`` over the frames added so far (int64 [K, K + 1])."""
         return _confusion_from_frames(self._ap_frames, iou_threshold, self.num_classes)
 
-    def tag_confusion(self, num_tags: int, iou_threshold: float = 0.5) -> np.ndarray:
+    def tag_confusion(
+        self, num_tags: int, iou_threshold: float = 0.5, *, grouping: str = DEFAULT_GROUPING
+    ) -> np.ndarray:
         """``confusion`` with ground truths counted by their ``gt_tags`` instead of their class.
 
         The matches are ``confusion``'s, so summing the rows of the tags of one class gives that
-        class's row there.
+        class's row there, and every grouping's rows sum to the same column totals.
+
+        Args:
+          num_tags: tags lie in ``0..num_tags - 1``.
+          iou_threshold: mask IoU a match needs.
+          grouping: which of the named groupings ``gt_tags`` was given as a dict (an array
+            given alone is ``DEFAULT_GROUPING``).
 
         Returns:
           int64 [num_tags, K + 1]: entry [t, d] counts objects tagged t found as class d; the
@@ -765,14 +830,17 @@ class Evaluator:
         Raises:
           ValueError: a frame was added without tags, or a tag is not below ``num_tags``.
         """
-        missing = [i for i, t in enumerate(self._gt_tags) if t is None]
+        missing = [i for i, t in enumerate(self._gt_tags) if t is None or grouping not in t]
         if missing:
-            raise ValueError(f"tag_confusion: frames {missing[:5]} were added without gt_tags")
-        top = max((int(t.max()) for t in self._gt_tags if t.size), default=-1)
+            raise ValueError(
+                f"tag_confusion: frames {missing[:5]} were added without {_tags_name(grouping)}"
+            )
+        rows = [t[grouping] for t in self._gt_tags]
+        top = max((int(t.max()) for t in rows if t.size), default=-1)
         if top >= num_tags:
             raise ValueError(f"tag_confusion: tag {top} but num_tags is {num_tags}")
         return _confusion_from_frames(
-            self._ap_frames, iou_threshold, self.num_classes, rows=(self._gt_tags, num_tags)
+            self._ap_frames, iou_threshold, self.num_classes, rows=(rows, num_tags)
         )
 
     def table(self, results: dict | None = None) -> str:
