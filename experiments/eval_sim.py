@@ -11,8 +11,9 @@ Prints the per-class table and the class confusion at mask IoU 0.5 (which class 
 was detected as, or missed; ``metrics.class_confusion``), then the same counts per object
 variant (``Class/variant``, held-out variants marked ``*``), so a held-out shape's errors are
 not mistaken for its class's, and the objects found and missed by their number of lidar
-points, their KITTI occlusion level and their distance from the sensor (``BREAKDOWNS``), so a
-miss rate can be put down to the data or to the model; writes all of it as JSON (``--json``).
+points, their KITTI occlusion level, their distance from the sensor and their footprint size
+(``BREAKDOWNS``), so a miss rate can be put down to the data or to the model; writes all of
+it as JSON (``--json``).
 
 Threshold sweeps: ``--score-threshold`` and ``--mask-threshold`` take comma lists; every
 combination is scored on the same frames in one pass (one simulation and one network
@@ -43,6 +44,7 @@ from indoorbev_jax.predict import load_model
 TEST_SEED = 1_000_003  # root seed of the held-out test set (training uses train.seed, 0)
 POINT_EDGES = (10, 30, 100, 300)  # lidar returns on the object
 RANGE_EDGES = (2.0, 3.0, 4.0, 5.0)  # metres from the sensor to the box centre, in the BEV plane
+AREA_EDGES = (10, 25, 50, 100)  # grid cells of the footprint mask
 OCCLUSION_NAMES = ("0 (>=75% seen)", "1 (40-75%)", "2 (<40%)", "3 (no primitive seen)")
 
 
@@ -57,6 +59,7 @@ BREAKDOWNS = (
     ("points", _interval_names(POINT_EDGES, ""), "by lidar points on the object"),
     ("occlusion", OCCLUSION_NAMES, "by KITTI occlusion level (share of primitives seen)"),
     ("range", _interval_names(RANGE_EDGES, " m"), "by distance from the sensor"),
+    ("area", _interval_names(AREA_EDGES, " cells"), "by footprint size on the grid"),
 )
 
 
@@ -70,6 +73,7 @@ def frame_tags(targets, info) -> dict[str, np.ndarray]:
         "points": np.digitize(np.asarray(info.num_points), POINT_EDGES),
         "occlusion": np.asarray(info.occlusion),
         "range": np.digitize(np.hypot(pos[..., 0], pos[..., 1]), RANGE_EDGES),
+        "area": np.digitize(np.asarray(targets.masks).sum((-2, -1)), AREA_EDGES),
     }
 
 

@@ -142,3 +142,6 @@ def test_eval_sim_sweep_equals_one_evaluation_per_setting(tmp_path, capsys):
     by_range = np.array(sweep[0]["breakdowns@0.5"]["range"]["counts"]).sum(1)
     dist = np.sqrt((xy**2).sum(1))
     np.testing.assert_array_equal(by_range, np.histogram(dist, [0, 2, 3, 4, 5, np.inf])[0])
+    cells = np.asarray(data.targets.masks).sum((2, 3))[keep]
+    by_area = np.array(sweep[0]["breakdowns@0.5"]["area"]["counts"]).sum(1)
+    np.testing.assert_array_equal(by_area, np.histogram(cells, [0, 10, 25, 50, 100, np.inf])[0])
