@@ -421,7 +421,7 @@ def format_found(confusions: Mapping[float, np.ndarray], row_names: Sequence[str
         cells = []
         for _, c in items:
             missed = int(c[r, -1])
-            cells += [str(missed), f"{100 * missed / total:.1f}" if total else "-"]
+            cells += [str(missed), format_percent(missed / total if total else math.nan)]
         lines.append(f"{name:<{width}} {total:>7}" + "".join(f" {v:>9}" for v in cells))
     return "\n".join(lines)
 
