@@ -4,15 +4,22 @@ Scene: a 10 x 10 m room (floor plane, 4 wall boxes) with 60 furniture primitives
 type; sensor at the room centre, 0.5 m up. Patterns: one MID-360-like frame (20k rays), a
 360 x 64 grid, 1M random rays. Backends, all on the same scene and rays, interleaved:
   * ours      - cast_rays inside jax.jit (Warp kernels on the CPU), the jitted function taking
-    the MJX Model and Data (flattening their ~200 leaves costs ~0.7-1.8 ms per call);
-  * ours, poses - the same, the jitted function taking only the geom poses that change
-    between frames (geom_xpos, geom_xmat), as a simulation loop inside jit sees them;
-  * ours, 1 thread - as "ours" with cpu_threads=1 (one Warp launch per kernel);
+    the MJX Model and Data (flattening the Model's ~120 leaves, a Python pytree, costs
+    ~0.15-0.8 ms per call);
+  * ours, Data - the same with the Model closed over and the MJX Data passed per call, as
+    mujoco-lidar's trace_rays(data, ...) takes the MjData;
+  * ours, poses - the jitted function taking only the geom poses that change between
+    frames (geom_xpos, geom_xmat), as a simulation loop inside jit sees them;
+  * ours, 1 thread - as "ours" with cpu_threads=1;
   * mj_multiRay on two threads (the binding releases the GIL; rays split in halves);
   * mujoco-lidar 0.3.x backends "warp" (BVH) and "taichi", if installed. They are benchmark
     only: ``.venv/bin/pip install "mujoco-lidar[taichi]==0.3.5"`` (pulls torch).
-Prints the median time of ``--repeats`` interleaved runs, rays/s, our speed-up over the best
-other backend, and how many of our rays agree with mj_multiRay (1e-4 m, hit/miss included).
+Each timed run idles ``--settle`` s, then times one call ("after idle": what a node casting
+one frame per sensor period pays, waking the cores) and then ``--calls`` calls back to back
+("back to back": the throughput of a loop generating frames). Prints, per backend, the
+median over ``--repeats`` interleaved runs of both, rays/s, our speed-up over the best
+other backend in each mode, and how many of our rays agree with mj_multiRay (1e-4 m,
+hit/miss included).
 
 Usage: JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_lidar.py [--repeats 7]
 """
@@ -232,6 +239,12 @@ def main():
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--sets", default="mid360 frame,grid 360x64,random 1M")
     ap.add_argument(
+        "--calls",
+        type=int,
+        default=5,
+        help="back-to-back calls timed after the first call of each run (their median)",
+    )
+    ap.add_argument(
         "--settle",
         type=float,
         default=0.3,
@@ -261,6 +274,7 @@ def main():
     print(f"scene: {m.ngeom} geoms; {jax.device_count()} JAX device(s); repeats {args.repeats}")
     origin = jnp.asarray(SENSOR, jnp.float32)
     ours_fn = jax.jit(lambda mx, dx, v: lidar.cast_rays(mx, dx, origin, v, CUTOFF))
+    ours_data = jax.jit(lambda dx, v: lidar.cast_rays(mx, dx, origin, v, CUTOFF))
     ours_1t = jax.jit(lambda mx, dx, v: lidar.cast_rays(mx, dx, origin, v, CUTOFF, cpu_threads=1))
     ours_poses = jax.jit(
         lambda xpos, xmat, v: lidar.cast_rays(
@@ -280,6 +294,7 @@ def main():
         dirs_j = jnp.asarray(dirs)
         backends = {
             "ours": lambda dirs_j=dirs_j: ours_fn(mx, dx, dirs_j),
+            "ours, Data": lambda dirs_j=dirs_j: ours_data(dx, dirs_j),
             "ours, poses": lambda dirs_j=dirs_j: ours_poses(dx.geom_xpos, dx.geom_xmat, dirs_j),
             "ours, 1 thread": lambda dirs_j=dirs_j: ours_1t(mx, dx, dirs_j),
             "mj_multiRay x2 threads": MultiRay2(m, d, dirs),
@@ -289,7 +304,7 @@ def main():
         t0 = time.perf_counter()
         ours = jax.block_until_ready(backends["ours"]())
         first = time.perf_counter() - t0
-        for k in ("ours, poses", "ours, 1 thread"):
+        for k in ("ours, Data", "ours, poses", "ours, 1 thread"):
             same = jax.block_until_ready(backends[k]())
             assert all(np.array_equal(a, b) for a, b in zip(same, ours, strict=True)), k
         ref_d, ref_g = backends["mj_multiRay x2 threads"]()
@@ -297,23 +312,31 @@ def main():
         ok = (np.abs(np.asarray(ours[0]) - ref_d) <= 1e-4) & (
             np.asarray(ours[1]) == np.where(ref_d < 0, -1, ref_g)
         )
-        times = {k: [] for k in backends}
+        idle = {k: [] for k in backends}
+        loop = {k: [] for k in backends}
         for _ in range(args.repeats):
             for k, fn in backends.items():
                 time.sleep(args.settle)
                 block = jax.block_until_ready if k.startswith("ours") else (lambda x: x)
-                times[k].append(median_time(fn, block))
+                idle[k].append(median_time(fn, block))
+                loop[k].append(np.median([median_time(fn, block) for _ in range(args.calls)]))
         print(f"\n== {name}: {len(dirs)} rays (ours: first call incl. compile {first:.2f} s)")
         for note in notes:
             print("  " + note)
-        med = {k: float(np.median(v)) for k, v in times.items()}
-        for k, t in med.items():
-            print(f"  {k:28s} {t * 1e3:9.2f} ms  {len(dirs) / t / 1e6:8.2f} M rays/s")
-        best_other = min(t for k, t in med.items() if not k.startswith("ours"))
-        print(
-            f"  speed-up over the best other backend: ours {best_other / med['ours']:.2f}x, "
-            f"ours with poses {best_other / med['ours, poses']:.2f}x"
-        )
+        print(f"  {'':28s} {'after idle':>22s} {'back to back':>24s}")
+        med = {}
+        for mode, times in (("after idle", idle), ("back to back", loop)):
+            med[mode] = {k: float(np.median(v)) for k, v in times.items()}
+        for k in backends:
+            a, b = med["after idle"][k], med["back to back"][k]
+            print(
+                f"  {k:28s} {a * 1e3:8.2f} ms {len(dirs) / a / 1e6:6.2f} M/s"
+                f" {b * 1e3:9.2f} ms {len(dirs) / b / 1e6:7.2f} M/s"
+            )
+        for mode, t in med.items():
+            best = min(v for k, v in t.items() if not k.startswith("ours"))
+            ratios = ", ".join(f"{k} {best / v:.2f}x" for k, v in t.items() if k.startswith("ours"))
+            print(f"  speed-up over the best other backend, {mode}: {ratios}")
         print(f"  agreement with mj_multiRay (1e-4 m, hit/miss, geom): {ok.mean() * 100:.4f} %")
 
 

@@ -29,6 +29,8 @@ from concurrent.futures import ThreadPoolExecutor
 import warp as wp
 
 wp.config.quiet = True
+# Forward only: nothing differentiates through a ray cast, and it halves the compile time.
+wp.set_module_options({"enable_backward": False})
 
 # Type ids follow mujoco.mjtGeom.
 GEOM_PLANE = wp.constant(0)
@@ -201,20 +203,19 @@ def _ray_box(p: wp.vec3, v: wp.vec3, size: wp.vec3) -> float:
 
 
 @wp.func
-def ray_geom(
-    gtype: int, size: wp.vec3, pos: wp.vec3, mat: wp.mat33, pnt: wp.vec3, vec: wp.vec3
-) -> float:
-    """Distance (in units of |vec|) from pnt along vec to one primitive, -1 on a miss."""
-    dif = pnt - pos
-    if gtype == GEOM_SPHERE:
-        return _ray_sphere(dif, vec, size[0])
-    mt = wp.transpose(mat)
-    p = mt * dif
-    v = mt * vec
+def ray_geom(gtype: int, size: wp.vec3, p: wp.vec3, mat: wp.mat33, vec: wp.vec3) -> float:
+    """Distance (in units of |vec|) along vec to one primitive, -1 on a miss.
+
+    p: the ray's origin in the geom's local frame (``geom_xmat^T (pnt - geom_xpos)``); all rays
+    of a scene share their origin, so it is computed once per geom (``lidar._sensor_frame``).
+    """
+    v = wp.transpose(mat) * vec
     if gtype == GEOM_BOX:
         return _ray_box(p, v, size)
     if gtype == GEOM_PLANE:
         return _ray_plane(p, v, size)
+    if gtype == GEOM_SPHERE:
+        return _ray_sphere(p, v, size[0])
     if gtype == GEOM_CAPSULE:
         return _ray_capsule(p, v, size)
     if gtype == GEOM_CYLINDER:
@@ -239,21 +240,23 @@ def cast_brute(
     # Model:
     geom_type: wp.array2d(dtype=int),
     geom_size: wp.array2d(dtype=wp.vec3),
-    geom_pos: wp.array2d(dtype=wp.vec3),
     geom_mat: wp.array2d(dtype=wp.mat33),
+    geom_local: wp.array2d(dtype=wp.vec3),
     geom_rbound: wp.array2d(dtype=float),
     geom_enabled: wp.array2d(dtype=int),
     # In:
     dirs: wp.array2d(dtype=wp.vec3),
-    origin: wp.array(dtype=wp.vec3),
     max_range: wp.array(dtype=float),
     # Out:
     dist_out: wp.array2d(dtype=float),
     geom_out: wp.array2d(dtype=int),
 ):
-    """Reference path: every enabled geom, in id order (launch [B, R])."""
+    """Reference path: every enabled geom, in id order (launch [B, R]).
+
+    geom_local: the scene's ray origin in each geom's frame; its norm is the origin's distance
+    to the geom centre, which the bounding-sphere reject needs (rotations keep lengths).
+    """
     s, r = wp.tid()
-    pnt = origin[s]
     vec = dirs[s, r]
     inv_len = 1.0 / wp.length(vec)
     best = max_range[s] * inv_len
@@ -261,18 +264,19 @@ def cast_brute(
     for g in range(geom_type.shape[1]):
         if geom_enabled[s, g] == 0:
             continue
+        p = geom_local[s, g]
         # Bounding-sphere reject: the ray's closest approach to the centre is too far.
         rb = geom_rbound[s, g]
         if rb < BIG:
-            dif = geom_pos[s, g] - pnt
-            tc = wp.dot(dif, vec) * inv_len
-            perp2 = wp.dot(dif, dif) - tc * tc
-            slack = BOUND_ABS + BOUND_REL * (rb * rb + wp.dot(dif, dif))
+            v = wp.transpose(geom_mat[s, g]) * vec  # the direction in the local frame
+            tc = -wp.dot(p, v) * inv_len
+            perp2 = wp.dot(p, p) - tc * tc
+            slack = BOUND_ABS + BOUND_REL * (rb * rb + wp.dot(p, p))
             if perp2 > rb * rb + slack:
                 continue
             if tc * inv_len > best + rb * inv_len:
                 continue
-        sol = ray_geom(geom_type[s, g], geom_size[s, g], geom_pos[s, g], geom_mat[s, g], pnt, vec)
+        sol = ray_geom(geom_type[s, g], geom_size[s, g], p, geom_mat[s, g], vec)
         if _better(sol, g, best, best_g):
             best = sol
             best_g = g
@@ -293,18 +297,27 @@ def _toward(cos_t: float, cos_b: float, sin_b: float) -> float:
     return cos_t * cos_b + sin_t * sin_b
 
 
-@wp.kernel
-def build_bins(
+@wp.func
+def _least(cos_t: float, cos_b: float, sin_b: float) -> float:
+    """Min of cos(angle to e) over the same cone, i.e. cos(min(pi, t + b))."""
+    if -cos_t >= cos_b:
+        return -1.0
+    sin_t = wp.sqrt(wp.max(0.0, 1.0 - cos_t * cos_t))
+    return cos_t * cos_b - sin_t * sin_b
+
+
+@wp.func
+def _build_cell(
+    s: int,
+    k: int,
     # Model:
-    geom_size: wp.array2d(dtype=wp.vec3),
-    geom_pos: wp.array2d(dtype=wp.vec3),
     geom_mat: wp.array2d(dtype=wp.mat33),
+    geom_local: wp.array2d(dtype=wp.vec3),
     geom_ext: wp.array2d(dtype=wp.vec3),
-    geom_rbound: wp.array2d(dtype=float),
+    geom_cone: wp.array2d(dtype=wp.vec4),
     geom_enabled: wp.array2d(dtype=int),
     geom_front: wp.array2d(dtype=int),
     # In:
-    origin: wp.array(dtype=wp.vec3),
     bin_axis: wp.array2d(dtype=wp.vec3),
     bin_cos: wp.array2d(dtype=float),
     bin_sin: wp.array2d(dtype=float),
@@ -314,43 +327,45 @@ def build_bins(
     cand_n_out: wp.array2d(dtype=int),
     cand_drop_out: wp.array2d(dtype=float),
 ):
-    """Per cube-map cell, the geoms a ray of the cell may hit, sorted (launch [B, cells]).
+    """Cell k of scene s: the geoms a ray of the cell may hit, sorted by a lower bound on
+    the hit distance (``build_bins``).
 
+    geom_local: the sensor in each geom's frame. geom_cone: (unit direction from the sensor to
+    the bounding sphere's centre, sine of the sphere's angular radius), or w >= 1 when the
+    sensor is inside the sphere or the geom is unbounded (then no cone test); all per geom
+    from ``lidar._sensor_frame``, so that the per-cell loop only does what depends on the cell.
     geom_ext: half extents of the local bounding box (>= BIG for an unbounded plane axis);
     geom_front: 1 for planes (hit only from the front face, +z local).
     """
-    s, k = wp.tid()
-    pnt = origin[s]
     axis = bin_axis[s, k]
     cb = bin_cos[s, k]
     sb = bin_sin[s, k]
     cap = cand_geom_out.shape[2]
     n = wp.int32(0)
     drop = wp.float32(BIG)
-    for g in range(geom_pos.shape[1]):
+    for g in range(geom_local.shape[1]):
         if geom_enabled[s, g] == 0:
             continue
-        dif = geom_pos[s, g] - pnt
-        t_lo = wp.float32(0.0)
-        rb = geom_rbound[s, g]
-        if rb < BIG:
-            d = wp.length(dif)
-            if d > rb:
-                # Cone of the cell vs cone subtended by the bounding sphere.
-                sa = rb / d
-                ca = wp.sqrt(1.0 - sa * sa)
-                cos_t = wp.dot(axis, dif) / d
-                # cos(a + b) when a + b < pi; reject when the angle exceeds it.
-                if ca * cb - sa * sb > -1.0 + 1.0e-6:
-                    if cos_t < ca * cb - sa * sb - 1.0e-5:
-                        continue
-                t_lo = d - rb
-        # Slabs of the local bounding box: to reach slab i from outside it, a ray must
-        # travel at least the gap divided by the largest direction component toward it.
-        mt = wp.transpose(geom_mat[s, g])
-        lp = mt * (-dif)
-        la = mt * axis
+        cone = geom_cone[s, g]
+        sa = cone[3]
+        if sa < 1.0:
+            # Cone of the cell vs cone subtended by the bounding sphere: reject when the angle
+            # between the axes exceeds the sum of the half-angles (cos(a + b) when a + b < pi).
+            ca = wp.sqrt(1.0 - sa * sa)
+            thr = ca * cb - sa * sb
+            if thr > -1.0 + 1.0e-6:
+                if wp.dot(axis, wp.vec3(cone[0], cone[1], cone[2])) < thr - 1.0e-5:
+                    continue
+        # Slabs of the local bounding box. From outside slab i a ray must travel at least
+        # the gap over the largest direction component toward it (a lower bound on the hit);
+        # from inside, it leaves the slab after at most the distance to a face over the
+        # smallest component toward that face (an upper bound). Every hit point lies in all
+        # slabs at once, so a cell whose lower bound passes its upper bound cannot hit.
+        lp = geom_local[s, g]
+        la = wp.transpose(geom_mat[s, g]) * axis
         ext = geom_ext[s, g]
+        t_lo = wp.float32(0.0)
+        t_hi = wp.float32(BIG)
         reject = wp.int32(0)
         for i in range(3):
             e = ext[i]
@@ -365,12 +380,24 @@ def build_bins(
                         reject = 1
                     else:
                         t_lo = wp.max(t_lo, gap / m)
+                else:
+                    # 1e-5 below the exact minimum: a margin for float32 rounding.
+                    up = _least(la[i], cb, sb) - 1.0e-5
+                    if up > 1.0e-6:
+                        t_hi = wp.min(t_hi, (e - lp[i]) / up)
+                    down = _least(-la[i], cb, sb) - 1.0e-5
+                    if down > 1.0e-6:
+                        t_hi = wp.min(t_hi, (e + lp[i]) / down)
         if geom_front[s, g] != 0:
             if lp[2] < 0.0:
                 reject = 1  # behind a plane: mj_ray never hits its back face
+        if sa < 1.0:
+            t_lo = wp.max(t_lo, wp.length(lp) * (1.0 - sa))  # distance to the sphere
         if reject != 0:
             continue
         t_lo = t_lo * (1.0 - BOUND_REL) - BOUND_ABS
+        if t_hi < BIG and t_lo > t_hi * (1.0 + BOUND_REL) + BOUND_ABS:
+            continue
         # Sorted insertion into a list of capacity `cap`; the farthest falls off.
         if n == cap:
             if t_lo >= cand_t_out[s, k, cap - 1]:
@@ -388,6 +415,46 @@ def build_bins(
         n += 1
     cand_n_out[s, k] = n
     cand_drop_out[s, k] = drop
+
+
+@wp.kernel
+def build_bins(
+    # Model:
+    geom_mat: wp.array2d(dtype=wp.mat33),
+    geom_local: wp.array2d(dtype=wp.vec3),
+    geom_ext: wp.array2d(dtype=wp.vec3),
+    geom_cone: wp.array2d(dtype=wp.vec4),
+    geom_enabled: wp.array2d(dtype=int),
+    geom_front: wp.array2d(dtype=int),
+    # In:
+    bin_axis: wp.array2d(dtype=wp.vec3),
+    bin_cos: wp.array2d(dtype=float),
+    bin_sin: wp.array2d(dtype=float),
+    # Out:
+    cand_geom_out: wp.array3d(dtype=int),
+    cand_t_out: wp.array3d(dtype=float),
+    cand_n_out: wp.array2d(dtype=int),
+    cand_drop_out: wp.array2d(dtype=float),
+):
+    """Per cube-map cell, the geoms a ray of the cell may hit, sorted (launch [B, cells])."""
+    s, k = wp.tid()
+    _build_cell(
+        s,
+        k,
+        geom_mat,
+        geom_local,
+        geom_ext,
+        geom_cone,
+        geom_enabled,
+        geom_front,
+        bin_axis,
+        bin_cos,
+        bin_sin,
+        cand_geom_out,
+        cand_t_out,
+        cand_n_out,
+        cand_drop_out,
+    )
 
 
 @wp.func
@@ -422,13 +489,16 @@ def dir_cell(v: wp.vec3, n: int) -> int:
     return (face * n + i) * n + j
 
 
-@wp.kernel
-def cast_binned(
+@wp.func
+def _cast_ray(
+    s: int,
+    r: int,
+    k: int,
     # Model:
     geom_type: wp.array2d(dtype=int),
     geom_size: wp.array2d(dtype=wp.vec3),
-    geom_pos: wp.array2d(dtype=wp.vec3),
     geom_mat: wp.array2d(dtype=wp.mat33),
+    geom_local: wp.array2d(dtype=wp.vec3),
     geom_enabled: wp.array2d(dtype=int),
     cand_geom: wp.array3d(dtype=int),
     cand_t: wp.array3d(dtype=float),
@@ -436,27 +506,24 @@ def cast_binned(
     cand_drop: wp.array2d(dtype=float),
     # In:
     dirs: wp.array2d(dtype=wp.vec3),
-    origin: wp.array(dtype=wp.vec3),
     max_range: wp.array(dtype=float),
     cells_per_edge: int,
     # Out:
     dist_out: wp.array2d(dtype=float),
     geom_out: wp.array2d(dtype=int),
 ):
-    """Closest hit per ray using the cell lists of ``build_bins`` (launch [B, R])."""
-    s, r = wp.tid()
-    pnt = origin[s]
+    """Closest hit of ray r of scene s, whose direction lies in cube-map cell k, using the
+    cell lists of ``build_bins``."""
     vec = dirs[s, r]
     inv_len = 1.0 / wp.length(vec)
     best = max_range[s] * inv_len
     best_g = wp.int32(-1)
-    k = dir_cell(vec, cells_per_edge)
     for c in range(cand_n[s, k]):
         # Bounds are in metres; ray parameters are in units of |vec|.
         if cand_t[s, k, c] * inv_len > best:
             break
         g = cand_geom[s, k, c]
-        sol = ray_geom(geom_type[s, g], geom_size[s, g], geom_pos[s, g], geom_mat[s, g], pnt, vec)
+        sol = ray_geom(geom_type[s, g], geom_size[s, g], geom_local[s, g], geom_mat[s, g], vec)
         if _better(sol, g, best, best_g):
             best = sol
             best_g = g
@@ -465,9 +532,7 @@ def cast_binned(
         for g in range(geom_type.shape[1]):
             if geom_enabled[s, g] == 0:
                 continue
-            sol = ray_geom(
-                geom_type[s, g], geom_size[s, g], geom_pos[s, g], geom_mat[s, g], pnt, vec
-            )
+            sol = ray_geom(geom_type[s, g], geom_size[s, g], geom_local[s, g], geom_mat[s, g], vec)
             if _better(sol, g, best, best_g):
                 best = sol
                 best_g = g
@@ -478,6 +543,97 @@ def cast_binned(
     geom_out[s, r] = best_g
 
 
+@wp.kernel
+def cast_binned(
+    # Model:
+    geom_type: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    geom_mat: wp.array2d(dtype=wp.mat33),
+    geom_local: wp.array2d(dtype=wp.vec3),
+    geom_enabled: wp.array2d(dtype=int),
+    cand_geom: wp.array3d(dtype=int),
+    cand_t: wp.array3d(dtype=float),
+    cand_n: wp.array2d(dtype=int),
+    cand_drop: wp.array2d(dtype=float),
+    # In:
+    dirs: wp.array2d(dtype=wp.vec3),
+    max_range: wp.array(dtype=float),
+    cells_per_edge: int,
+    rays_per_thread: int,
+    # Out:
+    dist_out: wp.array2d(dtype=float),
+    geom_out: wp.array2d(dtype=int),
+):
+    """Closest hit per ray (launch [B, ceil(R / rays_per_thread)]).
+
+    Each thread casts ``rays_per_thread`` consecutive rays: 1 on CUDA; on the CPU, where a
+    launch runs its threads one after another, a few dozen per thread cut the per-thread
+    setup (about 20 % of a 20k-ray frame).
+    """
+    s, q = wp.tid()
+    for r in range(q * rays_per_thread, wp.min((q + 1) * rays_per_thread, dirs.shape[1])):
+        k = dir_cell(dirs[s, r], cells_per_edge)
+        _cast_ray(s, r, k, geom_type, geom_size, geom_mat, geom_local, geom_enabled, cand_geom,
+                  cand_t, cand_n, cand_drop, dirs, max_range, cells_per_edge, dist_out,
+                  geom_out)  # fmt: skip
+
+
+@wp.kernel
+def build_and_cast_cpu(
+    # Model (build):
+    geom_mat: wp.array2d(dtype=wp.mat33),
+    geom_local: wp.array2d(dtype=wp.vec3),
+    geom_ext: wp.array2d(dtype=wp.vec3),
+    geom_cone: wp.array2d(dtype=wp.vec4),
+    geom_enabled: wp.array2d(dtype=int),
+    geom_front: wp.array2d(dtype=int),
+    # In (build):
+    bin_axis: wp.array2d(dtype=wp.vec3),
+    bin_cos: wp.array2d(dtype=float),
+    bin_sin: wp.array2d(dtype=float),
+    # Model (cast):
+    geom_type: wp.array2d(dtype=int),
+    geom_size: wp.array2d(dtype=wp.vec3),
+    # In:
+    dirs: wp.array2d(dtype=wp.vec3),
+    max_range: wp.array(dtype=float),
+    cells_per_edge: int,
+    rays_per_thread: int,
+    # Out:
+    cand_geom_out: wp.array3d(dtype=int),
+    cand_t_out: wp.array3d(dtype=float),
+    cand_n_out: wp.array2d(dtype=int),
+    cand_drop_out: wp.array2d(dtype=float),
+    dist_out: wp.array2d(dtype=float),
+    geom_out: wp.array2d(dtype=int),
+):
+    """``build_bins`` and ``cast_binned`` in one CPU launch ([B, cells + ray chunks]), each
+    cell built only when a ray first falls in it.
+
+    The first ``cells`` threads of a scene mark its cells unbuilt (``cand_n_out`` -1); the
+    ray chunks then build a cell on its first use. That relies on a CPU launch running its
+    threads one after another, in order (Warp's CPU backend), so never launch this on CUDA.
+    One launch instead of two halves the FFI round trips, and cells no ray reaches (most of
+    the cube below a MID-360's -7 deg, for one) cost nothing. ``cand_*_out`` of unbuilt cells
+    are left undefined.
+    """
+    s, t = wp.tid()
+    ncell = bin_axis.shape[1]
+    if t < ncell:
+        cand_n_out[s, t] = -1
+        return
+    q = t - ncell
+    for r in range(q * rays_per_thread, wp.min((q + 1) * rays_per_thread, dirs.shape[1])):
+        k = dir_cell(dirs[s, r], cells_per_edge)
+        if cand_n_out[s, k] < 0:
+            _build_cell(s, k, geom_mat, geom_local, geom_ext, geom_cone, geom_enabled, geom_front,
+                        bin_axis, bin_cos, bin_sin, cand_geom_out, cand_t_out, cand_n_out,
+                        cand_drop_out)  # fmt: skip
+        _cast_ray(s, r, k, geom_type, geom_size, geom_mat, geom_local, geom_enabled,
+                  cand_geom_out, cand_t_out, cand_n_out, cand_drop_out, dirs, max_range,
+                  cells_per_edge, dist_out, geom_out)  # fmt: skip
+
+
 # ----------------------------------------------------------------------------- CPU threads
 # A Warp CPU launch runs on one thread, and XLA runs FFI calls one after another, so on the
 # CPU the bridge (``lidar.py``) calls the functions below through ``wp.jax_callable``: each
@@ -486,10 +642,13 @@ def cast_binned(
 # the GIL while they run; results are identical to one launch.
 
 # Below this many rays per thread a launch stays on one thread: waking an idle second core
-# cost up to ~5 ms on the 2-core VMs we measured (docs/BENCHMARKS.md, "Lidar"). A cube-map
-# cell costs about as much as CELL_COST rays (it tests every geom; ~0.8 us vs 0.1 us).
-MIN_ITEMS_PER_THREAD = 65536
+# costs milliseconds on the 2-core VMs we measured, so a split pays only from about 300k rays
+# after an idle spell (docs/BENCHMARKS.md, "Lidar"). A cube-map cell costs about as much as
+# CELL_COST rays (it tests every geom; ~0.3 us vs 0.045 us).
+MIN_ITEMS_PER_THREAD = 131072
 CELL_COST = 8
+# Rays one CPU kernel thread casts (``cast_binned``'s rays_per_thread; 1 on CUDA).
+CPU_RAYS_PER_THREAD = 256
 _pool: ThreadPoolExecutor | None = None
 _pool_workers = 0
 _pool_lock = threading.Lock()
@@ -506,25 +665,40 @@ def _executor(workers: int) -> ThreadPoolExecutor:
         return _pool
 
 
+def split_threads(threads: int, nscene: int, n: int, item_cost: int = 1) -> int:
+    """Threads a launch of ``nscene * n`` items of cost ``item_cost`` rays is shared over."""
+    return max(1, min(int(threads), (nscene * n * item_cost) // MIN_ITEMS_PER_THREAD))
+
+
 def launch_split(
-    kernel, inputs: list, outputs: list, split: set[int], threads: int, item_cost: int = 1
+    kernel,
+    inputs: list,
+    outputs: list,
+    split: set[int],
+    threads: int,
+    item_cost: int = 1,
+    per_thread: int = 1,
 ) -> None:
-    """``wp.launch`` over dim (B, N) from ``outputs[0].shape``, N shared by up to ``threads``.
+    """``wp.launch`` over the (B, N) items of ``outputs[0].shape``, N shared by up to ``threads``.
 
     ``split``: positions of the inputs indexed by the second launch axis (every output is).
     ``item_cost``: work of one launch item in rays, for the one-thread threshold.
+    ``per_thread``: items one kernel thread handles (the launch is [B, ceil(N / per_thread)]).
     """
     nscene, n = outputs[0].shape[:2]
-    threads = max(1, min(int(threads), (nscene * n * item_cost) // MIN_ITEMS_PER_THREAD))
+    threads = split_threads(threads, nscene, n, item_cost)
     device = outputs[0].device
+
+    def dims(outs) -> tuple[int, int]:
+        return nscene, -(-outs[0].shape[1] // per_thread)
 
     def share(t: int) -> None:
         ins = [x[:, t::threads] if i in split else x for i, x in enumerate(inputs)]
         outs = [x[:, t::threads] for x in outputs]
-        wp.launch(kernel, dim=outs[0].shape[:2], inputs=ins, outputs=outs, device=device)
+        wp.launch(kernel, dim=dims(outs), inputs=ins, outputs=outs, device=device)
 
     if threads == 1 or not device.is_cpu:
-        wp.launch(kernel, dim=(nscene, n), inputs=inputs, outputs=outputs, device=device)
+        wp.launch(kernel, dim=dims(outputs), inputs=inputs, outputs=outputs, device=device)
         return
     pending = [_executor(threads - 1).submit(share, t) for t in range(1, threads)]
     share(0)
@@ -536,17 +710,20 @@ def threaded(kernel, num_outputs: int, split: tuple[str, ...], item_cost: int = 
     """A host function for ``wp.jax_callable`` that runs ``kernel`` through ``launch_split``.
 
     Its signature is the kernel's, with ``threads: int`` after the inputs (``jax_callable``
-    reads the annotations); ``split`` names the inputs indexed by the second launch axis.
+    reads the annotations); ``split`` names the inputs indexed by the second launch axis. A
+    kernel input named ``rays_per_thread`` sets ``launch_split``'s ``per_thread``.
     """
     hints = inspect.get_annotations(kernel.func, eval_str=True)
     names = list(inspect.signature(kernel.func).parameters)
     inputs, outputs = names[:-num_outputs], names[-num_outputs:]
     split_at = {inputs.index(n) for n in split}
+    per_at = inputs.index("rays_per_thread") if "rays_per_thread" in inputs else None
     n_in = len(inputs)
 
     def host(*args):
+        per = 1 if per_at is None else int(args[per_at])
         launch_split(kernel, list(args[:n_in]), list(args[n_in + 1 :]), split_at, args[n_in],
-                     item_cost)  # fmt: skip
+                     item_cost, per)  # fmt: skip
 
     param = functools.partial(inspect.Parameter, kind=inspect.Parameter.POSITIONAL_OR_KEYWORD)
     params = [param(n, annotation=hints[n]) for n in inputs]

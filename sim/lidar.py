@@ -261,6 +261,7 @@ _KERNELS = {
     "brute": (K.cast_brute, 2, ("dirs",), 1),
     "build": (K.build_bins, 4, ("bin_axis", "bin_cos", "bin_sin"), K.CELL_COST),
     "binned": (K.cast_binned, 2, ("dirs",), 1),
+    "fused": (K.build_and_cast_cpu, 6, (), 1),  # CPU only, one thread
 }
 
 
@@ -308,70 +309,88 @@ def _launch(name: str, *arrays, static=(), launch_dims, output_dims=None, thread
     return jax.lax.platform_dependent(*arrays, cpu=on_threads, default=one_launch)
 
 
+def _sensor_frame(geo: SceneGeometry, origin: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """What every ray of a scene shares per geom, computed once instead of per ray or cell.
+
+    Args:
+      geo: B scenes.
+      origin: [B, 3] the scenes' ray origins.
+
+    Returns:
+      ``(local, cone)``: local [B, G, 3] the origin in each geom's frame
+      (``geom_xmat^T (origin - geom_xpos)``); cone [B, G, 4] the unit direction from the
+      origin to the geom centre and the sine of its bounding sphere's angular radius, whose
+      value 1 means no cone (origin inside the sphere, or an unbounded geom).
+    """
+    dif = geo.pos - origin[:, None, :]  # [B, G, 3] origin -> centre
+    local = jnp.einsum("bgji,bgj->bgi", geo.mat, -dif)
+    d = jnp.linalg.norm(dif, axis=-1)  # [B, G]
+    has_cone = (geo.rbound < _BIG) & (d > geo.rbound)
+    sin_a = jnp.where(has_cone, geo.rbound / jnp.where(has_cone, d, 1.0), 1.0)
+    unit = dif / jnp.where(d > 0, d, 1.0)[..., None]
+    return local, jnp.concatenate([unit, sin_a[..., None]], -1).astype(jnp.float32)
+
+
 def _cast_impl(geo: SceneGeometry, dirs, origin, max_range, *, method, cells, capacity, threads):
     """All inputs batched over scenes: dirs [B, R, 3], origin [B, 3], max_range [B]."""
     nscene, nray = dirs.shape[:2]
+    local, cone = _sensor_frame(geo, origin)
     if method == "brute":
         return _launch(
             "brute",
             geo.geom_type,
             geo.size,
-            geo.pos,
             geo.mat,
+            local,
             geo.rbound,
             geo.enabled,
             dirs,
-            origin,
             max_range,
             launch_dims=(nscene, nray),
             threads=threads,
         )
     axis, cosb, sinb = _cube_cells(cells)
     ncell = axis.shape[0]
+    tables = [jnp.broadcast_to(jnp.asarray(x), (nscene,) + x.shape) for x in (axis, cosb, sinb)]
+    cand_dims = {
+        "cand_geom_out": (nscene, ncell, capacity),
+        "cand_t_out": (nscene, ncell, capacity),
+        "cand_n_out": (nscene, ncell),
+        "cand_drop_out": (nscene, ncell),
+    }
+    ray_dims = {"dist_out": (nscene, nray), "geom_out": (nscene, nray)}
 
-    def bcast(x):  # shared cell table -> [B, ...]
-        return jnp.broadcast_to(jnp.asarray(x), (nscene,) + x.shape)
+    def two_launches(mat, local, ext, cone, enabled, front, ax, cb, sb, gtype, size, dirs, mr,
+                     *, per: int, split: int):  # fmt: skip
+        """build_bins, then cast_binned (per rays a kernel thread, split CPU threads)."""
+        cell_in = (mat, local, ext, cone, enabled, front, ax, cb, sb)
+        if split > 1:
+            cand = _ffi_threads("build")(*cell_in, split, output_dims=cand_dims)
+            return _ffi_threads("binned")(gtype, size, mat, local, enabled, *cand, dirs, mr,
+                                          cells, per, split, output_dims=ray_dims)  # fmt: skip
+        cand = _ffi("build")(*cell_in, launch_dims=(nscene, ncell), output_dims=cand_dims)
+        chunks = -(-nray // per)
+        return _ffi("binned")(gtype, size, mat, local, enabled, *cand, dirs, mr, cells, per,
+                              launch_dims=(nscene, chunks), output_dims=ray_dims)  # fmt: skip
 
-    cand_geom, cand_t, cand_n, cand_drop = _launch(
-        "build",
-        geo.size,
-        geo.pos,
-        geo.mat,
-        geo.ext,
-        geo.rbound,
-        geo.enabled,
-        geo.front,
-        origin,
-        bcast(axis),
-        bcast(cosb),
-        bcast(sinb),
-        launch_dims=(nscene, ncell),
-        output_dims={
-            "cand_geom_out": (nscene, ncell, capacity),
-            "cand_t_out": (nscene, ncell, capacity),
-            "cand_n_out": (nscene, ncell),
-            "cand_drop_out": (nscene, ncell),
-        },
-        threads=threads,
-    )
-    return _launch(
-        "binned",
-        geo.geom_type,
-        geo.size,
-        geo.pos,
-        geo.mat,
-        geo.enabled,
-        cand_geom,
-        cand_t,
-        cand_n,
-        cand_drop,
-        dirs,
-        origin,
-        max_range,
-        static=(cells,),
-        launch_dims=(nscene, nray),
-        threads=threads,
-    )
+    def on_cpu(*args):
+        per = K.CPU_RAYS_PER_THREAD
+        ray_split = K.split_threads(threads, nscene, nray)
+        cell_split = K.split_threads(threads, nscene, ncell, K.CELL_COST)
+        if max(ray_split, cell_split) > 1:
+            return two_launches(*args, per=per, split=threads)
+        # One launch that builds each cell on first use (CPU launches run threads in order).
+        out = _ffi("fused")(*args, cells, per, launch_dims=(nscene, ncell + -(-nray // per)),
+                            output_dims={**cand_dims, **ray_dims})  # fmt: skip
+        return out[-2:]
+
+    def on_gpu(*args):
+        return two_launches(*args, per=1, split=1)
+
+    args = (geo.mat, local, geo.ext, cone, geo.enabled, geo.front, *tables, geo.geom_type,
+            geo.size, dirs, max_range)  # fmt: skip
+    dist, gid = jax.lax.platform_dependent(*args, cpu=on_cpu, default=on_gpu)
+    return dist, gid
 
 
 @functools.cache

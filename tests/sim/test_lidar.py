@@ -156,8 +156,11 @@ def test_cpu_threads_split_launches_without_changing_results(scenes, monkeypatch
             out[threads] = [np.asarray(x) for x in fn(dx_b, origins, jnp.asarray(dirs))]
             kernel = "cast_" + method
             shares = [n for key, (b, n) in launches if key == kernel and b == 2]
-            # One thread is the plain FFI kernel; more deal the rays out round-robin.
-            want = [len(range(t, 4001, threads)) for t in range(threads)] if threads > 1 else []
+            # One thread is the plain FFI kernel; more deal the rays out round-robin, and
+            # each kernel thread of cast_binned casts CPU_RAYS_PER_THREAD of a share's rays.
+            per = K.CPU_RAYS_PER_THREAD if method == "binned" else 1
+            want = [-(-len(range(t, 4001, threads)) // per) for t in range(threads)]
+            want = want if threads > 1 else []
             assert sorted(shares) == sorted(want)
         for threads in (2, 3):
             np.testing.assert_array_equal(out[threads][0], out[1][0])
@@ -273,3 +276,30 @@ def test_surface_normals_are_unit_and_face_the_ray(scenes):
     np.testing.assert_allclose(np.linalg.norm(np.asarray(n)[hit], axis=-1), 1.0, atol=1e-5)
     # Every hit from a point outside all primitives is on a front face.
     assert np.all(np.sum(np.asarray(n) * np.asarray(dirs), -1)[hit] < 1e-3)
+
+
+@pytest.mark.parametrize("cells", [3, 12, 20])
+def test_culling_never_changes_a_ray(scenes, cells):
+    """The cube-map culling (cones, slab bounds, lazily built cells) only skips tests that
+    cannot hit: binned and brute give the same geom and distance for every ray."""
+    rng = np.random.default_rng(11 + cells)
+    for m, d, mx, dx in scenes:
+        origins = [d.geom_xpos[g] for g in rng.choice(np.arange(1, m.ngeom), 2, replace=False)]
+        origins += list(rng.uniform(-4, 4, (2, 3)))
+        for o in origins:
+            o = jnp.asarray(o, jnp.float32)
+            dirs = jnp.asarray(unit_rays(rng, 20_000))
+            dist_b, gid_b = lidar.cast_rays(mx, dx, o, dirs, MAX_RANGE, cells_per_edge=cells)
+            dist_r, gid_r = lidar.cast_rays(mx, dx, o, dirs, MAX_RANGE, method="brute")
+            np.testing.assert_array_equal(np.asarray(gid_b), np.asarray(gid_r))
+            np.testing.assert_array_equal(np.asarray(dist_b), np.asarray(dist_r))
+
+
+def test_kernels_compile_for_cuda(tmp_path):
+    """The CUDA path (two launches, one ray per thread) is never run on these CPU machines;
+    compiling the module to sm_90 PTX with Warp's NVRTC at least proves it builds."""
+    import warp as wp
+    from indoorbev_sim import _lidar_kernels as K
+
+    out = wp.compile_aot_module(K, arch=90, module_dir=tmp_path, use_ptx=True)
+    assert any(str(p).endswith(".sm90.ptx") for p in out), out
