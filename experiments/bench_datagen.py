@@ -7,8 +7,9 @@ one scene), MuJoCo ``mj_multiRay`` for the scan and the visibility rays, numpy f
 counts and filtering (``generate.reference_frame``).
 
 Runs are interleaved (ours, reference, ours, ...) and the median per-frame time is reported.
-A third row times the same compiled program with every Warp launch kept on one CPU thread
-(``_lidar_kernels.MIN_ITEMS_PER_THREAD`` raised for that run; it is read at run time).
+A third row times the same generator traced with every Warp launch kept on one CPU thread
+(``_lidar_kernels.MIN_ITEMS_PER_THREAD`` raised while it is traced and run: the choice between
+one launch and launches shared over threads is made when the program is traced).
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_datagen.py --preset small --batch 8
 """
@@ -36,13 +37,19 @@ def main() -> None:
     cfg = Config.preset(args.preset)
     b = args.batch
     ours = generate.jitted_generate(cfg, "train", b)
+    # A second program (jitted_generate is cached), traced on one thread below.
+    ours_1t = jax.jit(lambda key: generate.generate_batch_with_info(key, cfg, "train", b))
     one = generate.jitted_draw(cfg, "train", 1)
     pattern = generate.make_pattern(cfg.sim)
     rng = np.random.default_rng(0)
 
+    split_at = _lidar_kernels.MIN_ITEMS_PER_THREAD
     t0 = time.perf_counter()
     jax.block_until_ready(ours(jax.random.key(0)))
     compile_ours = time.perf_counter() - t0
+    _lidar_kernels.MIN_ITEMS_PER_THREAD = 1 << 62
+    jax.block_until_ready(ours_1t(jax.random.key(0)))
+    _lidar_kernels.MIN_ITEMS_PER_THREAD = split_at
     t0 = time.perf_counter()
     scene, t, k, _ = one(jax.random.key(0))
     generate.reference_frame(cfg, generate.scene_numpy(scene, 0), float(t[0]),
@@ -50,14 +57,13 @@ def main() -> None:
     compile_ref = time.perf_counter() - t0
 
     ours_s, ours1_s, ref_s = [], [], []
-    split_at = _lidar_kernels.MIN_ITEMS_PER_THREAD
     for r in range(args.repeats):
         # The two "ours" rows swap places each repeat: the first after the single-threaded
         # reference finds the second core asleep.
         for one_thread in (False, True) if r % 2 == 0 else (True, False):
             _lidar_kernels.MIN_ITEMS_PER_THREAD = 1 << 62 if one_thread else split_at
             t0 = time.perf_counter()
-            jax.block_until_ready(ours(jax.random.key(100 + r)))
+            jax.block_until_ready((ours_1t if one_thread else ours)(jax.random.key(100 + r)))
             (ours1_s if one_thread else ours_s).append((time.perf_counter() - t0) / b)
         _lidar_kernels.MIN_ITEMS_PER_THREAD = split_at
         t0 = time.perf_counter()
