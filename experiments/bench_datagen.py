@@ -8,8 +8,8 @@ counts and filtering (``generate.reference_frame``).
 
 Runs are interleaved (ours, reference, ours, ...) and the median per-frame time is reported.
 A third row times the same generator traced with every Warp launch kept on one CPU thread
-(``_lidar_kernels.MIN_ITEMS_PER_THREAD`` raised while it is traced and run: the choice between
-one launch and launches shared over threads is made when the program is traced).
+(``_lidar_kernels.MIN_ITEMS_PER_THREAD`` raised while it is traced: the choice between one
+launch and launches shared over threads is made when the program is traced).
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_datagen.py --preset small --batch 8
 """
@@ -61,11 +61,9 @@ def main() -> None:
         # The two "ours" rows swap places each repeat: the first after the single-threaded
         # reference finds the second core asleep.
         for one_thread in (False, True) if r % 2 == 0 else (True, False):
-            _lidar_kernels.MIN_ITEMS_PER_THREAD = 1 << 62 if one_thread else split_at
             t0 = time.perf_counter()
             jax.block_until_ready((ours_1t if one_thread else ours)(jax.random.key(100 + r)))
             (ours1_s if one_thread else ours_s).append((time.perf_counter() - t0) / b)
-        _lidar_kernels.MIN_ITEMS_PER_THREAD = split_at
         t0 = time.perf_counter()
         for f in range(args.ref_frames):
             scene, t, k, _ = one(jax.random.key(1000 * r + f))
