@@ -85,8 +85,11 @@ def dummy_loss(preds) -> jax.Array:
     return sum(jnp.mean(jnp.square(x.astype(jnp.float32))) for x in jax.tree.leaves(preds))
 
 
-def build_jax(cfg: Config, mode: str, batch: int, dtype):
-    """Jitted step, its arguments, compile seconds and XLA memory figure (bytes)."""
+def build_jax(cfg: Config, mode: str, batch: int, dtype, compiler_options=None):
+    """Jitted step, its arguments, compile seconds and XLA memory figure (bytes).
+
+    ``compiler_options``: XLA debug options for this compile only (``--xla-vs``).
+    """
     model = IndoorBEV(cfg, dtype=dtype)
     pts, valid = (jnp.asarray(a) for a in make_inputs(cfg, batch))
     params = jax.jit(model.init)(jax.random.key(0), pts, valid)
@@ -110,7 +113,7 @@ def build_jax(cfg: Config, mode: str, batch: int, dtype):
         args = (params, opt.init(params), pts, valid)
         jitted = jax.jit(step, donate_argnums=(0, 1))
     t0 = time.perf_counter()
-    compiled = jitted.lower(*args).compile()
+    compiled = jitted.lower(*args).compile(compiler_options or None)
     compile_s = time.perf_counter() - t0
     mem = compiled.memory_analysis()
     mem_bytes = (
@@ -215,6 +218,13 @@ def main(argv=None):
         "the first, e.g. the memory-lean settings against the plain ones",
     )
     ap.add_argument(
+        "--xla-vs",
+        action="append",
+        default=[],
+        help="XLA option name=value (e.g. xla_cpu_experimental_ynn_fusion_type=) for a second "
+        "jax step, same config, compiled in this process and timed interleaved with the first",
+    )
+    ap.add_argument(
         "--settle",
         type=float,
         default=0.5,
@@ -239,6 +249,13 @@ def main(argv=None):
         if a.vs:
             run, compile_s, mem, _ = build_jax(apply_overrides(cfg, a.vs), a.mode, a.batch, dtype)
             name = f"jax[{' '.join(a.vs)}]"
+            runners[name] = run
+            print(f"{label}: {name} compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB")
+        if a.xla_vs:
+            options = dict(item.split("=", 1) for item in a.xla_vs)
+            options = {k: {"true": True, "false": False}.get(v, v) for k, v in options.items()}
+            run, compile_s, mem, _ = build_jax(cfg, a.mode, a.batch, dtype, options)
+            name = f"jax[{' '.join(a.xla_vs)}]"
             runners[name] = run
             print(f"{label}: {name} compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB")
     peers = [] if a.only == "jax" or a.peer == "none" else a.peer.split(",")

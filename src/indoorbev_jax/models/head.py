@@ -157,6 +157,26 @@ def code_map(code_y: np.ndarray, code_x: np.ndarray, dtype) -> jax.Array:
     )
 
 
+class KeysMajorDense(nn.Dense):
+    """``nn.Dense`` (same parameters) whose output comes as [B, heads, d, T] from a [B, T, C]
+    input: the product is taken as kernel^T x^T, so the keys come out token-minor with no
+    transpose of the [B, T, C] map (a d = 8 strided copy over 250k tokens per decoder layer
+    in the ``paper`` preset).
+    """
+
+    heads: int = 1
+
+    @nn.compact
+    def __call__(self, inputs: jax.Array) -> jax.Array:
+        b, t, c_in = inputs.shape
+        kernel = self.param("kernel", self.kernel_init, (c_in, self.features), self.param_dtype)
+        bias = self.param("bias", self.bias_init, (self.features,), self.param_dtype)
+        x, kernel, bias = nn.dtypes.promote_dtype(inputs, kernel, bias, dtype=self.dtype)
+        y = jax.lax.dot_general(kernel, x.reshape(b * t, c_in), (((0,), (1,)), ((), ())))
+        y = (y + bias[:, None]).reshape(self.heads, self.features // self.heads, b, t)
+        return y.transpose(2, 0, 1, 3)
+
+
 class Attention(nn.Module):
     """Multi-head attention with separate query / key / value inputs.
 
@@ -208,18 +228,55 @@ class Attention(nn.Module):
             out = (acc / den[..., None]).astype(self.dtype)  # [B, h, Tq, d]
             out = out.transpose(0, 2, 1, 3).reshape(b, tq, c)
             return Dense(c, dtype=self.dtype, name="out")(out)
-        k = Dense(c, dtype=self.dtype, name="k")(k_in)
-        v = Dense(c, dtype=self.dtype, name="v")(v_in)
         # Heads-major layouts with keys as [B, h, d, Tk]: with few queries, long memories
         # and d = 8, this runs the CPU train step about 2x faster than
         # jax.nn.dot_product_attention's [B, T, h, d] (measured in experiments/bench_model.py).
+        k = KeysMajorDense(c, heads=h, dtype=self.dtype, name="k")(k_in)  # [B, h, d, Tk]
+        v = Dense(c, dtype=self.dtype, name="v")(v_in)
         q = q.reshape(b, tq, h, d).transpose(0, 2, 1, 3)  # [B, h, Tq, d]
-        k = k.reshape(b, -1, h, d).transpose(0, 2, 3, 1)  # [B, h, d, Tk]
         v = v.reshape(b, -1, h, d).transpose(0, 2, 1, 3)  # [B, h, Tk, d]
-        logits = jnp.einsum("bhqd,bhdk->bhqk", q, k).astype(jnp.float32)  # [B, h, Tq, Tk]
-        weights = jax.nn.softmax(logits, axis=-1).astype(self.dtype)
-        out = jnp.einsum("bhqk,bhkd->bqhd", weights, v).reshape(b, tq, c)
+        out = softmax_attention(q, k, v).transpose(0, 2, 1, 3).reshape(b, tq, c)
         return Dense(c, dtype=self.dtype, name="out")(out)
+
+
+def _softmax_attention_fwd(q: jax.Array, k: jax.Array, v: jax.Array):
+    logits = jnp.einsum("bhqd,bhdk->bhqk", q, k).astype(jnp.float32)  # [B, h, Tq, Tk]
+    p = jax.nn.softmax(logits, axis=-1).astype(q.dtype)
+    out = jnp.einsum("bhqk,bhkd->bhqd", p, v)
+    return out, (q, k, v, p, out)
+
+
+def _softmax_attention_bwd(res, g: jax.Array):
+    q, k, v, p, out = res
+    f32 = jnp.float32
+    dv = jnp.einsum("bhqk,bhqd->bhkd", p, g)
+    dp = jnp.einsum("bhqd,bhkd->bhqk", g, v).astype(f32)
+    # sum_k p_qk dp_qk = <g_q, out_q>: a d-long dot instead of autodiff's Tk-long reduction
+    # of the softmax backward, which dominated the cross-attention backward over 250k
+    # memory tokens (docs/BENCHMARKS.md, "Cross-attention backward").
+    delta = jnp.sum(g.astype(f32) * out.astype(f32), axis=-1, keepdims=True)
+    ds = (p.astype(f32) * (dp - delta)).astype(q.dtype)
+    dq = jnp.einsum("bhqk,bhdk->bhqd", ds, k)
+    dk = jnp.einsum("bhqd,bhqk->bhdk", q, ds)
+    return dq, dk, dv
+
+
+@jax.custom_vjp
+def softmax_attention(q: jax.Array, k: jax.Array, v: jax.Array) -> jax.Array:
+    """softmax(q k) v per head, with a hand-written backward (same gradients as autodiff).
+
+    Args:
+      q: [B, h, Tq, d] scaled queries.
+      k: [B, h, d, Tk] keys.
+      v: [B, h, Tk, d] values.
+
+    Returns:
+      [B, h, Tq, d]; logits and softmax in float32, products in q's dtype.
+    """
+    return _softmax_attention_fwd(q, k, v)[0]
+
+
+softmax_attention.defvjp(_softmax_attention_fwd, _softmax_attention_bwd)
 
 
 def _attend_chunk(attn: Attention, carry, k_in, v_in, key_ok, q):
