@@ -232,6 +232,13 @@ def main(argv=None):
         "spin-wait after a step, and on 2 cores that spinning would be charged to the next side",
     )
     a = ap.parse_args(argv)
+    bad = [item for item in a.xla_vs if "=" not in item]
+    if bad:
+        ap.error(f"--xla-vs expects NAME=VALUE, got {bad[0]!r}")
+    options = {
+        k: {"true": True, "false": False}.get(v, v)
+        for k, v in (item.split("=", 1) for item in a.xla_vs)
+    }
 
     cfg = apply_overrides(Config.preset(a.preset), a.set)
     label = f"{a.preset} {a.mode} B={a.batch}" + (f" [{' '.join(a.set)}]" if a.set else "")
@@ -246,16 +253,14 @@ def main(argv=None):
             f"freed memory retained {'yes' if host_memory.retained else 'no'} (host_memory)",
             flush=True,
         )
+        variants = []  # (settings shown in the name, config, XLA options)
         if a.vs:
-            run, compile_s, mem, _ = build_jax(apply_overrides(cfg, a.vs), a.mode, a.batch, dtype)
-            name = f"jax[{' '.join(a.vs)}]"
-            runners[name] = run
-            print(f"{label}: {name} compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB")
+            variants.append((a.vs, apply_overrides(cfg, a.vs), None))
         if a.xla_vs:
-            options = dict(item.split("=", 1) for item in a.xla_vs)
-            options = {k: {"true": True, "false": False}.get(v, v) for k, v in options.items()}
-            run, compile_s, mem, _ = build_jax(cfg, a.mode, a.batch, dtype, options)
-            name = f"jax[{' '.join(a.xla_vs)}]"
+            variants.append((a.xla_vs, cfg, options))
+        for shown, variant_cfg, variant_options in variants:
+            run, compile_s, mem, _ = build_jax(variant_cfg, a.mode, a.batch, dtype, variant_options)
+            name = f"jax[{' '.join(shown)}]"
             runners[name] = run
             print(f"{label}: {name} compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB")
     peers = [] if a.only == "jax" or a.peer == "none" else a.peer.split(",")

@@ -1,4 +1,4 @@
-"""Bad input to the evaluation and plotting scripts gets an error naming what is wrong."""
+"""Bad input to the evaluation, benchmark and plotting scripts gets an error naming it."""
 
 import importlib.util
 from pathlib import Path
@@ -142,3 +142,11 @@ def test_eval_sim_sweep_equals_one_evaluation_per_setting(tmp_path, capsys):
     cells = np.asarray(data.targets.masks).sum((2, 3))[keep]
     by_area = np.array(sweep[0]["breakdowns@0.5"]["area"]["counts"]).sum(1)
     np.testing.assert_array_equal(by_area, np.histogram(cells, [0, 10, 25, 50, 100, np.inf])[0])
+
+
+def test_bench_model_names_an_xla_option_without_a_value(capsys):
+    bench = _script("bench_model")
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(["--preset", "tiny", "--xla-vs", "xla_cpu_use_onednn"])
+    assert exit_info.value.code == 2
+    assert "--xla-vs expects NAME=VALUE, got 'xla_cpu_use_onednn'" in capsys.readouterr().err

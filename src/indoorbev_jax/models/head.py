@@ -253,7 +253,7 @@ def _softmax_attention_bwd(res, g: jax.Array):
     dp = jnp.einsum("bhqd,bhkd->bhqk", g, v).astype(f32)
     # sum_k p_qk dp_qk = <g_q, out_q>: a d-long dot instead of autodiff's Tk-long reduction
     # of the softmax backward, which dominated the cross-attention backward over 250k
-    # memory tokens (docs/BENCHMARKS.md, "Cross-attention backward").
+    # memory tokens (docs/BENCHMARKS.md, "An Intel Xeon VM, and the cross-attention backward").
     delta = jnp.sum(g.astype(f32) * out.astype(f32), axis=-1, keepdims=True)
     ds = (p.astype(f32) * (dp - delta)).astype(q.dtype)
     dq = jnp.einsum("bhqk,bhdk->bhqd", ds, k)
@@ -297,9 +297,8 @@ def _attend_chunk(attn: Attention, carry, k_in, v_in, key_ok, q):
     m, den, acc = carry
     b, tc, c = k_in.shape
     h, d = attn.num_heads, c // attn.num_heads
-    k = Dense(c, dtype=attn.dtype, name="k")(k_in)
+    k = KeysMajorDense(c, heads=h, dtype=attn.dtype, name="k")(k_in)  # [B, h, d, Tc]
     v = Dense(c, dtype=attn.dtype, name="v")(v_in)
-    k = k.reshape(b, tc, h, d).transpose(0, 2, 3, 1)  # [B, h, d, Tc]
     v = v.reshape(b, tc, h, d).transpose(0, 2, 1, 3)  # [B, h, Tc, d]
     logits = jnp.einsum("bhqd,bhdk->bhqk", q, k).astype(jnp.float32)  # [B, h, Tq, Tc]
     logits = jnp.where(key_ok, logits, -jnp.inf)
