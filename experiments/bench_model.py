@@ -221,8 +221,9 @@ def main(argv=None):
         "--xla-vs",
         action="append",
         default=[],
-        help="XLA option name=value (e.g. xla_cpu_experimental_ynn_fusion_type=) for a second "
-        "jax step, same config, compiled in this process and timed interleaved with the first",
+        help="XLA options 'name=value [name=value ...]' (e.g. "
+        "xla_cpu_experimental_ynn_fusion_type=) for another jax step, same config, compiled in "
+        "this process and timed interleaved with the first; repeat the flag for more variants",
     )
     ap.add_argument(
         "--settle",
@@ -232,13 +233,10 @@ def main(argv=None):
         "spin-wait after a step, and on 2 cores that spinning would be charged to the next side",
     )
     a = ap.parse_args(argv)
-    bad = [item for item in a.xla_vs if "=" not in item]
-    if bad:
-        ap.error(f"--xla-vs expects NAME=VALUE, got {bad[0]!r}")
-    options = {
-        k: {"true": True, "false": False}.get(v, v)
-        for k, v in (item.split("=", 1) for item in a.xla_vs)
-    }
+    xla_variants = [variant.split() for variant in a.xla_vs]
+    bad = [item for items in xla_variants for item in items if "=" not in item]
+    if bad or [] in xla_variants:
+        ap.error(f"--xla-vs expects NAME=VALUE, got {(bad or [''])[0]!r}")
 
     cfg = apply_overrides(Config.preset(a.preset), a.set)
     label = f"{a.preset} {a.mode} B={a.batch}" + (f" [{' '.join(a.set)}]" if a.set else "")
@@ -256,8 +254,12 @@ def main(argv=None):
         variants = []  # (settings shown in the name, config, XLA options)
         if a.vs:
             variants.append((a.vs, apply_overrides(cfg, a.vs), None))
-        if a.xla_vs:
-            variants.append((a.xla_vs, cfg, options))
+        for items in xla_variants:
+            options = {
+                k: {"true": True, "false": False}.get(v, v)
+                for k, v in (item.split("=", 1) for item in items)
+            }
+            variants.append((items, cfg, options))
         for shown, variant_cfg, variant_options in variants:
             run, compile_s, mem, _ = build_jax(variant_cfg, a.mode, a.batch, dtype, variant_options)
             name = f"jax[{' '.join(shown)}]"

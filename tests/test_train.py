@@ -21,6 +21,7 @@ from indoorbev_jax import train as T
 from indoorbev_jax.config import Config
 from indoorbev_jax.data.dataset import KittiDataset
 from indoorbev_jax.sweep import init_sweep, make_sweep_step, stack_hypers
+from indoorbev_jax.xla_flags import train_compiler_options
 
 sys.path.insert(0, str(Path(__file__).parent))
 from synthetic import write_synthetic_dataset  # noqa: E402
@@ -43,7 +44,9 @@ def batch(data):
 
 @pytest.fixture(scope="module")
 def step_fn():
-    return jax.jit(T.make_train_step(CFG))
+    # Compiled as train.train compiles it, so the sweep test compares like with like.
+    options = train_compiler_options(CFG.grid.shape)
+    return jax.jit(T.make_train_step(CFG), compiler_options=options)
 
 
 def test_lr_schedule_warmup_then_cosine():

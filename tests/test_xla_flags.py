@@ -48,3 +48,38 @@ def test_importing_the_package_turns_off_ynn_fusions():
 
     assert probe(INDOORBEV_XLA_DEFAULTS="0") == "YNN"  # XLA's default, which the flag changes
     assert probe() == "NO_YNN"
+
+
+def test_train_compiler_options_give_dot_fusions_to_small_grids_only(monkeypatch):
+    monkeypatch.setattr(xla_flags, "_applied", True)
+    assert xla_flags.train_compiler_options((100, 100)) == xla_flags.DOT_FUSIONS
+    assert xla_flags.train_compiler_options((500, 500)) == {}
+    monkeypatch.setattr(xla_flags, "_applied", False)  # the user's flags or another jaxlib
+    assert xla_flags.train_compiler_options((100, 100)) == {}
+
+
+# A dense layer's gradient compiled with the small-grid options: YNNPACK fusions, dots only.
+DOT_PROBE = """
+import indoorbev_jax, jax, jax.numpy as jnp
+from indoorbev_jax.xla_flags import train_compiler_options
+x, w = jnp.ones((512, 64)), jnp.ones((64, 64))
+def loss(w, x):
+    h = x @ w
+    return ((h - h.mean(-1, keepdims=True)) ** 2).sum()
+for shape in [(100, 100), (500, 500)]:
+    hlo = jax.jit(jax.grad(loss), compiler_options=train_compiler_options(shape)).lower(w, x)
+    text = hlo.compile().as_text()
+    print(text.count("__ynn_fusion"), " reduce(" in text)
+"""
+
+
+@pytest.mark.skipif(not TESTED, reason="flag only applied on the jaxlib versions measured")
+def test_small_grid_options_reach_xla():
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="")
+    env.pop("INDOORBEV_XLA_DEFAULTS", None)
+    out = subprocess.run([sys.executable, "-c", DOT_PROBE], env=env,
+                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert out.returncode == 0, out.stderr[-2000:]
+    small, paper = out.stdout.split("\n")[-3:-1]
+    assert int(small.split()[0]) > 0 and paper.split()[0] == "0"
+    assert small.split()[1] == "True"  # the mean's reduction stays an XLA op

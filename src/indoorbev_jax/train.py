@@ -42,6 +42,7 @@ from indoorbev_jax.data.rasterize import rasterize_boxes
 from indoorbev_jax.losses import seed_loss, set_loss
 from indoorbev_jax.models import IndoorBEV
 from indoorbev_jax.types import Batch
+from indoorbev_jax.xla_flags import train_compiler_options
 
 log = logging.getLogger("indoorbev_jax.train")
 
@@ -584,7 +585,11 @@ def train_and_evaluate(
         # Cut from the first training batches; the same ones on every resume.
         database = gt_database(source, GT_DATABASE_BATCHES, config.grid)
         log.info("ground-truth sampling database: %d objects", database.classes.shape[0])
-    train_step = jax.jit(make_train_step(config, database), donate_argnums=0)
+    train_step = jax.jit(
+        make_train_step(config, database),
+        donate_argnums=0,
+        compiler_options=train_compiler_options(config.grid.shape),
+    )
     predict_fn = make_predict_fn(config)
 
     bar = tqdm(total=t.total_steps, initial=start, disable=not progress, unit="step")
