@@ -234,9 +234,9 @@ def main(argv=None):
     )
     a = ap.parse_args(argv)
     xla_variants = [variant.split() for variant in a.xla_vs]
-    bad = [item for items in xla_variants for item in items if "=" not in item]
-    if bad or [] in xla_variants:
-        ap.error(f"--xla-vs expects NAME=VALUE, got {(bad or [''])[0]!r}")
+    bad = [item for items in xla_variants for item in items or [""] if "=" not in item]
+    if bad:
+        ap.error(f"--xla-vs expects NAME=VALUE, got {bad[0]!r}")
 
     cfg = apply_overrides(Config.preset(a.preset), a.set)
     label = f"{a.preset} {a.mode} B={a.batch}" + (f" [{' '.join(a.set)}]" if a.set else "")

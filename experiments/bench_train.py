@@ -19,8 +19,7 @@ import jax
 
 from indoorbev_jax.config import Config
 from indoorbev_jax.sweep import init_sweep, make_sweep_step, stack_hypers
-from indoorbev_jax.train import Hyper, init_state, make_train_step
-from indoorbev_jax.xla_flags import train_compiler_options
+from indoorbev_jax.train import Hyper, init_state, jit_train_step, make_train_step
 
 
 def _time(fn) -> float:
@@ -42,9 +41,7 @@ def bench_preset(name: str, steps: int, batch_size: int | None, sweep_k: int) ->
     key = jax.random.key(1)
     hyper = Hyper.from_config(config)
     state = init_state(config, jax.random.key(0))
-    step = jax.jit(
-        make_train_step(config), compiler_options=train_compiler_options(config.grid.shape)
-    )
+    step = jit_train_step(config, make_train_step(config))
     compile_s = _time(lambda: step.lower(state, batch, key, hyper).compile())
     state, _ = step(state, batch, key, hyper)  # warm-up
     times = []

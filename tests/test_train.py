@@ -21,7 +21,6 @@ from indoorbev_jax import train as T
 from indoorbev_jax.config import Config
 from indoorbev_jax.data.dataset import KittiDataset
 from indoorbev_jax.sweep import init_sweep, make_sweep_step, stack_hypers
-from indoorbev_jax.xla_flags import train_compiler_options
 
 sys.path.insert(0, str(Path(__file__).parent))
 from synthetic import write_synthetic_dataset  # noqa: E402
@@ -45,8 +44,7 @@ def batch(data):
 @pytest.fixture(scope="module")
 def step_fn():
     # Compiled as train.train compiles it, so the sweep test compares like with like.
-    options = train_compiler_options(CFG.grid.shape)
-    return jax.jit(T.make_train_step(CFG), compiler_options=options)
+    return T.jit_train_step(CFG, T.make_train_step(CFG))
 
 
 def test_lr_schedule_warmup_then_cosine():

@@ -21,11 +21,11 @@ from indoorbev_jax.train import (
     Hyper,
     TrainState,
     init_state,
+    jit_train_step,
     make_sources,
     make_train_step,
     prefetch,
 )
-from indoorbev_jax.xla_flags import train_compiler_options
 
 
 def stack_hypers(config: Config, learning_rates, weight_overrides: dict[str, list[float]]) -> Hyper:
@@ -49,10 +49,7 @@ def init_sweep(config: Config, k: int, key: jax.Array) -> TrainState:
 
 def make_sweep_step(config: Config):
     """``(states[K], batch, key, hypers[K]) -> (states[K], metrics[K])``, jitted."""
-    return jax.jit(
-        jax.vmap(make_train_step(config), in_axes=(0, None, None, 0)),
-        compiler_options=train_compiler_options(config.grid.shape),
-    )
+    return jit_train_step(config, jax.vmap(make_train_step(config), in_axes=(0, None, None, 0)))
 
 
 def run_sweep(config: Config, workdir, hypers: Hyper, data=None) -> TrainState:

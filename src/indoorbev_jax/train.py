@@ -172,6 +172,14 @@ def _all_finite(tree) -> jax.Array:
     return jnp.stack(leaves).all()
 
 
+def jit_train_step(config: Config, step: Callable, **jit_kwargs) -> Callable:
+    """``jax.jit`` of a train step (plain or vmapped) with the compiler options of
+    ``config``'s grid (``xla_flags.train_compiler_options``), so every train step compiles
+    alike: training, sweeps, benchmarks and tests."""
+    options = train_compiler_options(config.grid.shape)
+    return jax.jit(step, compiler_options=options, **jit_kwargs)
+
+
 def make_train_step(
     config: Config, database: ObjectDatabase | None = None
 ) -> Callable[[TrainState, Batch, jax.Array, Hyper], tuple[TrainState, dict]]:
@@ -585,11 +593,7 @@ def train_and_evaluate(
         # Cut from the first training batches; the same ones on every resume.
         database = gt_database(source, GT_DATABASE_BATCHES, config.grid)
         log.info("ground-truth sampling database: %d objects", database.classes.shape[0])
-    train_step = jax.jit(
-        make_train_step(config, database),
-        donate_argnums=0,
-        compiler_options=train_compiler_options(config.grid.shape),
-    )
+    train_step = jit_train_step(config, make_train_step(config, database), donate_argnums=0)
     predict_fn = make_predict_fn(config)
 
     bar = tqdm(total=t.total_steps, initial=start, disable=not progress, unit="step")
