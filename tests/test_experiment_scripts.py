@@ -150,3 +150,6 @@ def test_bench_model_names_an_xla_option_without_a_value(capsys):
         bench.main(["--preset", "tiny", "--xla-vs", "xla_cpu_use_onednn"])
     assert exit_info.value.code == 2
     assert "--xla-vs expects NAME=VALUE, got 'xla_cpu_use_onednn'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # an empty variant
+        bench.main(["--preset", "tiny", "--xla-vs", "a=b", "--xla-vs", " "])
+    assert "--xla-vs expects NAME=VALUE, got ''" in capsys.readouterr().err
