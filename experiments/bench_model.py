@@ -18,6 +18,10 @@ With ``INDOORBEV_RETAIN_MEMORY=1`` importing ``indoorbev_jax`` applies ``host_me
 sides then reuse freed pages instead of faulting them in every step (the header says which);
 without it, glibc's default.
 
+The train step of ours compiles with ``xla_flags.train_compiler_options`` for its grid, as
+``experiments/train.py`` compiles its step (YNNPACK dot fusions on small grids); the header
+names the options, and ``--xla-vs`` variants set others on top.
+
 Needs ``torch==2.13.0`` in the venv for the peer (benchmark-only, not a dependency)::
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_model.py --preset small --mode train \
@@ -48,6 +52,7 @@ import optax
 from indoorbev_jax import host_memory
 from indoorbev_jax.config import Config
 from indoorbev_jax.models import IndoorBEV
+from indoorbev_jax.xla_flags import train_compiler_options
 
 # INDOORBEV_PEER_DIR: where the peer lies when ../shared is not beside the checkout (a GPU
 # machine gets only the repository, so experiments/gpu_rows.sh copies it in).
@@ -88,8 +93,12 @@ def dummy_loss(preds) -> jax.Array:
 def build_jax(cfg: Config, mode: str, batch: int, dtype, compiler_options=None):
     """Jitted step, its arguments, compile seconds and XLA memory figure (bytes).
 
-    ``compiler_options``: XLA debug options for this compile only (``--xla-vs``).
+    ``compiler_options``: XLA debug options for this compile only. A train step gets
+    ``train_compiler_options`` for its grid underneath them, as ``train.py`` compiles it, so
+    the figure is the one training sees; ``--xla-vs`` items override those.
     """
+    if mode == "train":
+        compiler_options = {**train_compiler_options(cfg.grid.shape), **(compiler_options or {})}
     model = IndoorBEV(cfg, dtype=dtype)
     pts, valid = (jnp.asarray(a) for a in make_inputs(cfg, batch))
     params = jax.jit(model.init)(jax.random.key(0), pts, valid)
@@ -245,8 +254,10 @@ def main(argv=None):
         dtype = jnp.bfloat16 if a.bf16 else jnp.float32
         run, compile_s, mem, n = build_jax(cfg, a.mode, a.batch, dtype)
         runners["jax"] = run
+        base_options = train_compiler_options(cfg.grid.shape) if a.mode == "train" else {}
         print(
             f"{label}: jax {jax.__version__} {jax.devices()[0].platform} params {n / 1e6:.3f} M, "
+            f"XLA options {base_options or 'none'}, "
             f"compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB, "
             f"freed memory retained {'yes' if host_memory.retained else 'no'} (host_memory)",
             flush=True,

@@ -20,7 +20,7 @@ import time
 import jax
 
 from indoorbev_jax.config import Config, ConfigError, with_overrides
-from indoorbev_jax.train import Hyper, init_state, make_train_step
+from indoorbev_jax.train import Hyper, init_state, jit_train_step, make_train_step
 
 
 def main(argv=None) -> None:
@@ -54,7 +54,7 @@ def main(argv=None) -> None:
     print(f"{config.name}: {int(batch.targets.valid.sum())} objects in "
           f"{config.train.batch_size} frames; overrides {args.set or 'none'}")  # fmt: skip
     state = init_state(config, jax.random.key(args.seed + 1))
-    step = jax.jit(make_train_step(config), donate_argnums=0)
+    step = jit_train_step(config, make_train_step(config), donate_argnums=0)
     hyper = Hyper.from_config(config)
     key = jax.random.key(args.seed + 2)
     start = time.perf_counter()

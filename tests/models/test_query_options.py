@@ -172,7 +172,7 @@ def test_select_train_step_adds_the_weighted_seed_loss(tmp_path):
     batch = next(KittiDataset(tmp_path, "train", cfg).batches(2))
     state = T.init_state(cfg, jax.random.key(0))
     hyper = T.Hyper.from_config(cfg)
-    step = jax.jit(T.make_train_step(cfg))
+    step = T.jit_train_step(cfg, T.make_train_step(cfg))
     first, m = step(state, batch, jax.random.key(1), hyper)
     set_total = sum(float(hyper.weights[t]) * float(m[t]) for t in losses.TERMS)
     np.testing.assert_allclose(float(m["loss"]), set_total + 3.0 * float(m["seed"]), rtol=1e-5)
