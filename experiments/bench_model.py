@@ -91,7 +91,8 @@ def dummy_loss(preds) -> jax.Array:
 
 
 def build_jax(cfg: Config, mode: str, batch: int, dtype, compiler_options=None):
-    """Jitted step, its arguments, compile seconds and XLA memory figure (bytes).
+    """Jitted step, compile seconds, XLA memory figure (bytes), parameter count and the XLA
+    options it was compiled with.
 
     ``compiler_options``: XLA debug options for this compile only. A train step gets
     ``train_compiler_options`` for its grid underneath them, as ``train.py`` compiles it, so
@@ -141,7 +142,7 @@ def build_jax(cfg: Config, mode: str, batch: int, dtype, compiler_options=None):
             out = out[2]
         jax.block_until_ready(out)
 
-    return run, compile_s, mem_bytes, n_params
+    return run, compile_s, mem_bytes, n_params, compiler_options
 
 
 def build_peer(preset: str, mode: str, batch: int, up_mode: str, bf16: bool = False):
@@ -252,12 +253,11 @@ def main(argv=None):
     runners = {}
     if a.only != "torch":
         dtype = jnp.bfloat16 if a.bf16 else jnp.float32
-        run, compile_s, mem, n = build_jax(cfg, a.mode, a.batch, dtype)
+        run, compile_s, mem, n, used = build_jax(cfg, a.mode, a.batch, dtype)
         runners["jax"] = run
-        base_options = train_compiler_options(cfg.grid.shape) if a.mode == "train" else {}
         print(
             f"{label}: jax {jax.__version__} {jax.devices()[0].platform} params {n / 1e6:.3f} M, "
-            f"XLA options {base_options or 'none'}, "
+            f"XLA options {used or 'none'}, "
             f"compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB, "
             f"freed memory retained {'yes' if host_memory.retained else 'no'} (host_memory)",
             flush=True,
@@ -272,10 +272,15 @@ def main(argv=None):
             }
             variants.append((items, cfg, options))
         for shown, variant_cfg, variant_options in variants:
-            run, compile_s, mem, _ = build_jax(variant_cfg, a.mode, a.batch, dtype, variant_options)
+            run, compile_s, mem, _, used = build_jax(
+                variant_cfg, a.mode, a.batch, dtype, variant_options
+            )
             name = f"jax[{' '.join(shown)}]"
             runners[name] = run
-            print(f"{label}: {name} compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB")
+            print(
+                f"{label}: {name} XLA options {used or 'none'}, compile {compile_s:.1f} s, "
+                f"XLA memory {mem / 2**30:.2f} GiB"
+            )
     peers = [] if a.only == "jax" or a.peer == "none" else a.peer.split(",")
     for up_mode in peers:
         if a.preset == "tiny":
