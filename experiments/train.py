@@ -39,6 +39,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         "fresh optimizer state, ignored when the workdir resumes",
     )
     p.add_argument(
+        "--init-partial",
+        action="store_true",
+        help="with --init-from: load the parameters that match by name and shape, keep fresh "
+        "ones for the rest (e.g. --set head.upsampler_skips=false from a model with skips)",
+    )
+    p.add_argument(
         "--set",
         action="append",
         default=[],
@@ -75,7 +81,14 @@ def config_from_args(args: argparse.Namespace) -> Config:
 
 
 def main(argv=None) -> None:
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    # Our INFO lines only: an imported library already put a WARNING handler on the root
+    # logger (basicConfig would do nothing), and orbax's INFO lines are noise here.
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    ours = logging.getLogger("indoorbev_jax")
+    ours.addHandler(handler)
+    ours.setLevel(logging.INFO)
+    ours.propagate = False
     args = parse_args(argv)
     train_and_evaluate(
         config_from_args(args),
@@ -84,6 +97,7 @@ def main(argv=None) -> None:
         skip_bad_frames=args.skip_bad_frames,
         progress=not args.no_progress,
         init_from=args.init_from,
+        init_strict=not args.init_partial,
     )
 
 

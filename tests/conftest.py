@@ -1,4 +1,5 @@
-"""Test-session settings, applied before JAX starts (subprocesses inherit them).
+"""Test-session settings, applied before JAX starts (subprocesses inherit them), and the
+file order.
 
 The suite is compile-bound: XLA's backend optimisation level 0 compiles several times
 faster and the tiny test configs run fast enough without the optimisations.
@@ -10,3 +11,15 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     flags = os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
     os.environ["XLA_FLAGS"] = flags.strip()
+
+
+# The longest files start first, so with pytest-xdist (``make test``) they do not end last.
+LONGEST_FIRST = ("test_train.py", "test_chunked.py", "test_ros2.py", "test_query_options.py")
+
+
+def pytest_collection_modifyitems(items):
+    def rank(item):
+        name = item.path.name
+        return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
+
+    items.sort(key=rank)  # stable: the order within a file stays as written

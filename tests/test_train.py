@@ -176,7 +176,11 @@ def test_kill_and_rerun_resumes_bitwise(data, tmp_path):
     )
     env = _env(tmp_path / "cache")
     full, killed = tmp_path / "full", tmp_path / "killed"
-    subprocess.run(_train_cmd(data, full, pretrained), check=True, env=env, timeout=900)
+    first = subprocess.run(
+        _train_cmd(data, full, pretrained), check=True, env=env, timeout=900,
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert f"indoorbev_jax.train: parameters from {pretrained}" in first.stderr  # logs show
     proc = subprocess.Popen(
         _train_cmd(data, killed, pretrained), env=env, stderr=subprocess.DEVNULL
     )
@@ -273,3 +277,32 @@ def test_with_pretrained_loads_a_model_file_and_names_mismatches(tmp_path):
     wider = dataclasses.replace(CFG, head=dataclasses.replace(CFG.head, ffn_dim=64))
     with pytest.raises(ValueError, match=r"trained.msgpack: parameter .* has shape"):
         T.train_and_evaluate(wider, tmp_path / "run", data=str(tmp_path), init_from=path)
+
+    # Partial load: a source with an extra array, one missing and one of another shape.
+    src = jax.tree.map(np.asarray, trained)
+    flat = {jax.tree_util.keystr(p): p for p, _ in jax.tree_util.tree_flatten_with_path(src)[0]}
+    missing, reshaped = sorted(flat)[0], sorted(flat)[-1]
+    head = src["params"]["head"]
+    head["lateral_extra"] = {"kernel": np.ones((3, 3), np.float32)}
+    del _get(src, flat[missing])[flat[missing][-1].key]
+    last = _get(src, flat[reshaped])
+    last[flat[reshaped][-1].key] = np.zeros((*np.shape(last[flat[reshaped][-1].key]), 2))
+    odd = export_model(src, CFG, tmp_path / "odd.msgpack")
+    with pytest.raises(ValueError, match=r"odd.msgpack: parameter .* is missing"):
+        T.with_pretrained(state, CFG, odd)
+    part, report = T._load_pretrained(state, CFG, odd, strict=False)
+    assert report["unused"] == ["['params']['head']['lateral_extra']['kernel']"]
+    assert [r.split(" ")[0] for r in report["fresh"]] == [missing, reshaped]
+    got = dict(jax.tree_util.tree_flatten_with_path(part.params)[0])
+    fresh = dict(jax.tree_util.tree_flatten_with_path(state.params)[0])
+    ref = dict(jax.tree_util.tree_flatten_with_path(trained)[0])
+    for path_, leaf in got.items():
+        expect = fresh if jax.tree_util.keystr(path_) in (missing, reshaped) else ref
+        np.testing.assert_array_equal(np.asarray(leaf), np.asarray(expect[path_]))
+
+
+def _get(tree, path):
+    """The dict holding the leaf at a key path."""
+    for k in path[:-1]:
+        tree = tree[k.key]
+    return tree

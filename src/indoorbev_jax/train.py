@@ -130,13 +130,27 @@ def init_state(config: Config, key: jax.Array) -> TrainState:
     return init(key)
 
 
-def with_pretrained(state: TrainState, config: Config, source: str | os.PathLike) -> TrainState:
+def with_pretrained(
+    state: TrainState, config: Config, source: str | os.PathLike, *, strict: bool = True
+) -> TrainState:
     """``state`` with the parameters of a trained model (fresh optimizer state).
 
     ``source`` is a run directory or an exported model file (``predict.load_model``). Its grid
-    and class names must equal the run's and its parameter tree must match name for name and
-    shape for shape; the error names the first difference.
+    and class names must equal the run's. With ``strict`` its parameter tree must match name
+    for name and shape for shape; the error names the first difference. Without it, every
+    parameter the two share by name and shape is loaded, the rest keep ``state``'s fresh
+    values and the source's extra ones are dropped (``train_and_evaluate`` logs both lists and
+    keeps them in ``init_from.json``), e.g. to start the paper-mode upsampler
+    (``head.upsampler_skips=false``) from a model with skips.
     """
+    return _load_pretrained(state, config, source, strict)[0]
+
+
+def _load_pretrained(
+    state: TrainState, config: Config, source: str | os.PathLike, strict: bool
+) -> tuple[TrainState, dict[str, list[str]]]:
+    """``with_pretrained`` and its report: ``fresh`` (the run's parameters not loaded, with
+    the reason) and ``unused`` (the source's parameters the run has no place for)."""
     from indoorbev_jax.predict import load_model
 
     src_config, params = load_model(source)
@@ -151,20 +165,36 @@ def with_pretrained(state: TrainState, config: Config, source: str | os.PathLike
     leaves, treedef = jax.tree_util.tree_flatten_with_path(state.params)
     want = dict(leaves)
     have = dict(jax.tree_util.tree_flatten_with_path(params)[0])
+    report: dict[str, list[str]] = {"fresh": [], "unused": []}
     for path in sorted(want.keys() | have.keys(), key=jax.tree_util.keystr):
         name = jax.tree_util.keystr(path)
         if path not in have:
-            raise ValueError(f"{source}: parameter {name} is missing")
-        if path not in want:
-            raise ValueError(f"{source}: parameter {name} is not in the run's model")
-        if np.shape(have[path]) != want[path].shape:
-            raise ValueError(
-                f"{source}: parameter {name} has shape {np.shape(have[path])}, "
+            problem = f"parameter {name} is missing"
+            report["fresh"].append(f"{name} (missing)")
+        elif path not in want:
+            problem = f"parameter {name} is not in the run's model"
+            report["unused"].append(name)
+        elif np.shape(have[path]) != want[path].shape:
+            problem = (
+                f"parameter {name} has shape {np.shape(have[path])}, "
                 f"the run's model expects {want[path].shape}"
             )
-    loaded = [jnp.asarray(have[path], leaf.dtype) for path, leaf in leaves]
+            report["fresh"].append(f"{name} (shape {np.shape(have[path])} != {want[path].shape})")
+        else:
+            continue
+        if strict:
+            raise ValueError(f"{source}: {problem}")
+    loaded = [
+        jnp.asarray(have[path], leaf.dtype)
+        if path in have and np.shape(have[path]) == leaf.shape
+        else leaf
+        for path, leaf in leaves
+    ]
+    if len(report["fresh"]) == len(leaves):
+        raise ValueError(f"{source}: no parameter matches the run's model by name and shape")
     params = jax.tree_util.tree_unflatten(treedef, loaded)
-    return state.replace(params=params, opt_state=make_optimizer(config).init(params))
+    state = state.replace(params=params, opt_state=make_optimizer(config).init(params))
+    return state, report
 
 
 def _all_finite(tree) -> jax.Array:
@@ -534,6 +564,7 @@ def train_and_evaluate(
     skip_bad_frames: bool = False,
     progress: bool = True,
     init_from: str | os.PathLike | None = None,
+    init_strict: bool = True,
 ) -> TrainState:
     """Trains ``config`` in ``workdir``, resuming from its latest readable checkpoint.
 
@@ -547,6 +578,8 @@ def train_and_evaluate(
       init_from: start from this trained model's parameters (run directory or exported
         model file; ``with_pretrained``) instead of random ones. Only a fresh run uses it:
         a resumed run continues from its own checkpoint. Recorded in ``init_from.json``.
+      init_strict: require ``init_from``'s parameter tree to match the model's exactly;
+        False loads what matches by name and shape (``with_pretrained(strict=False)``).
 
     Returns:
       The final ``TrainState``.
@@ -574,10 +607,19 @@ def train_and_evaluate(
         state = restored
         log.info("resumed from step %d", int(state.step))
     elif init_from is not None:
-        state = with_pretrained(state, config, init_from)
+        state, report = _load_pretrained(state, config, init_from, init_strict)
         record = {"init_from": str(Path(init_from).resolve())}
         if Path(init_from).is_file():
             record["sha256"] = hashlib.sha256(Path(init_from).read_bytes()).hexdigest()
+        if not init_strict:
+            record.update(strict=False, **report)
+            log.info(
+                "partial load: %d parameter arrays fresh %s, %d unused %s",
+                len(report["fresh"]),
+                report["fresh"],
+                len(report["unused"]),
+                report["unused"],
+            )
         tmp = workdir / "init_from.tmp"
         tmp.write_text(json.dumps(record, indent=2) + "\n")
         os.replace(tmp, workdir / "init_from.json")
