@@ -149,7 +149,9 @@ def build_peer(preset: str, mode: str, batch: int, up_mode: str, bf16: bool = Fa
     """The peer's step (``torch_indoorbev.bench``'s step) on our inputs.
 
     On the GPU when JAX runs on one and torch sees CUDA (each timed run then ends with a
-    ``torch.cuda.synchronize``); ``bf16`` is CUDA autocast there, as ``--bf16`` is for ours.
+    ``torch.cuda.synchronize``). ``bf16`` is torch's autocast to bfloat16 on that device
+(CUDA, or the CPU, where oneDNN runs bf16 GEMMs on AMX / AVX-512 BF16), as ``--bf16`` is for
+ours.
     """
     import contextlib
 
@@ -165,8 +167,8 @@ def build_peer(preset: str, mode: str, batch: int, up_mode: str, bf16: bool = Fa
     pts, valid = (torch.from_numpy(a).to(device) for a in make_inputs(cfg, batch))
 
     def autocast():
-        if bf16 and cuda:
-            return torch.autocast("cuda", dtype=torch.bfloat16)
+        if bf16:
+            return torch.autocast(device.type, dtype=torch.bfloat16)
         return contextlib.nullcontext()
 
     def sync():
@@ -216,7 +218,7 @@ def main(argv=None):
     ap.add_argument("--warmup", type=int, default=1)
     ap.add_argument("--set", action="append", default=[], help="config override a.b=v")
     ap.add_argument(
-        "--bf16", action="store_true", help="bfloat16 computation (ours; the peer's on a GPU)"
+        "--bf16", action="store_true", help="bfloat16 computation (ours; the peer's by autocast)"
     )
     ap.add_argument("--peer", default="convT2", help="comma list of peer up_modes, or none")
     ap.add_argument("--only", default="both", choices=["both", "jax", "torch"])
