@@ -150,8 +150,8 @@ def build_peer(preset: str, mode: str, batch: int, up_mode: str, bf16: bool = Fa
 
     On the GPU when JAX runs on one and torch sees CUDA (each timed run then ends with a
     ``torch.cuda.synchronize``). ``bf16`` is torch's autocast to bfloat16 on that device
-(CUDA, or the CPU, where oneDNN runs bf16 GEMMs on AMX / AVX-512 BF16), as ``--bf16`` is for
-ours.
+    (CUDA, or the CPU, where oneDNN runs bf16 GEMMs on AMX / AVX-512 BF16), as ``--bf16`` is
+    for ours.
     """
     import contextlib
 
