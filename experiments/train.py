@@ -83,10 +83,11 @@ def config_from_args(args: argparse.Namespace) -> Config:
 def main(argv=None) -> None:
     # Our INFO lines only: an imported library already put a WARNING handler on the root
     # logger (basicConfig would do nothing), and orbax's INFO lines are noise here.
-    handler = logging.StreamHandler()
-    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
     ours = logging.getLogger("indoorbev_jax")
-    ours.addHandler(handler)
+    if not ours.handlers:  # main() called again in one process adds no second handler
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        ours.addHandler(handler)
     ours.setLevel(logging.INFO)
     ours.propagate = False
     args = parse_args(argv)

@@ -299,6 +299,10 @@ def test_with_pretrained_loads_a_model_file_and_names_mismatches(tmp_path):
     for path_, leaf in got.items():
         expect = fresh if jax.tree_util.keystr(path_) in (missing, reshaped) else ref
         np.testing.assert_array_equal(np.asarray(leaf), np.asarray(expect[path_]))
+    unrelated = jax.tree.map(lambda x: np.zeros((*np.shape(x), 2), np.float32), trained)
+    unrelated = export_model(unrelated, CFG, tmp_path / "unrelated.msgpack")
+    with pytest.raises(ValueError, match=r"unrelated.msgpack: no parameter matches"):
+        T.with_pretrained(state, CFG, unrelated, strict=False)
 
 
 def _get(tree, path):

@@ -166,6 +166,7 @@ def _load_pretrained(
     want = dict(leaves)
     have = dict(jax.tree_util.tree_flatten_with_path(params)[0])
     report: dict[str, list[str]] = {"fresh": [], "unused": []}
+    matched = set()
     for path in sorted(want.keys() | have.keys(), key=jax.tree_util.keystr):
         name = jax.tree_util.keystr(path)
         if path not in have:
@@ -181,17 +182,15 @@ def _load_pretrained(
             )
             report["fresh"].append(f"{name} (shape {np.shape(have[path])} != {want[path].shape})")
         else:
+            matched.add(path)
             continue
         if strict:
             raise ValueError(f"{source}: {problem}")
-    loaded = [
-        jnp.asarray(have[path], leaf.dtype)
-        if path in have and np.shape(have[path]) == leaf.shape
-        else leaf
-        for path, leaf in leaves
-    ]
-    if len(report["fresh"]) == len(leaves):
+    if not matched:
         raise ValueError(f"{source}: no parameter matches the run's model by name and shape")
+    loaded = [
+        jnp.asarray(have[path], leaf.dtype) if path in matched else leaf for path, leaf in leaves
+    ]
     params = jax.tree_util.tree_unflatten(treedef, loaded)
     state = state.replace(params=params, opt_state=make_optimizer(config).init(params))
     return state, report
