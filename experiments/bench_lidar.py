@@ -11,6 +11,8 @@ type; sensor at the room centre, 0.5 m up. Patterns: one MID-360-like frame (20k
   * ours, poses - the jitted function taking only the geom poses that change between
     frames (geom_xpos, geom_xmat), as a simulation loop inside jit sees them;
   * ours, 1 thread - as "ours" with cpu_threads=1;
+  * ours, jax caster - cast_rays(method="jax"), the pure-JAX caster for machines without
+    warp-lang (every ray against every geom, no culling), "ours, Data" otherwise;
   * mj_multiRay on two threads (the binding releases the GIL; rays split in halves);
   * mujoco-lidar 0.3.x backends "warp" (BVH) and "taichi", if installed. They are benchmark
     only: ``.venv/bin/pip install "mujoco-lidar[taichi]==0.3.5"`` (pulls torch).
@@ -276,6 +278,7 @@ def main():
     ours_fn = jax.jit(lambda mx, dx, v: lidar.cast_rays(mx, dx, origin, v, CUTOFF))
     ours_data = jax.jit(lambda dx, v: lidar.cast_rays(mx, dx, origin, v, CUTOFF))
     ours_1t = jax.jit(lambda mx, dx, v: lidar.cast_rays(mx, dx, origin, v, CUTOFF, cpu_threads=1))
+    ours_jax = jax.jit(lambda dx, v: lidar.cast_rays(mx, dx, origin, v, CUTOFF, method="jax"))
     ours_poses = jax.jit(
         lambda xpos, xmat, v: lidar.cast_rays(
             mx, dx.replace(geom_xpos=xpos, geom_xmat=xmat), origin, v, CUTOFF
@@ -297,6 +300,7 @@ def main():
             "ours, Data": lambda dirs_j=dirs_j: ours_data(dx, dirs_j),
             "ours, poses": lambda dirs_j=dirs_j: ours_poses(dx.geom_xpos, dx.geom_xmat, dirs_j),
             "ours, 1 thread": lambda dirs_j=dirs_j: ours_1t(mx, dx, dirs_j),
+            "ours, jax caster": lambda dirs_j=dirs_j: ours_jax(dx, dirs_j),
             "mj_multiRay x2 threads": MultiRay2(m, d, dirs),
         }
         ml, notes = mujoco_lidar_backends(m, d, dirs)
@@ -307,11 +311,18 @@ def main():
         for k in ("ours, Data", "ours, poses", "ours, 1 thread"):
             same = jax.block_until_ready(backends[k]())
             assert all(np.array_equal(a, b) for a, b in zip(same, ours, strict=True)), k
+        t0 = time.perf_counter()
+        ours_j = jax.block_until_ready(backends["ours, jax caster"]())
+        first_jax = time.perf_counter() - t0
         ref_d, ref_g = backends["mj_multiRay x2 threads"]()
         ref_d = np.where((ref_d < 0) | (ref_d > CUTOFF), -1.0, ref_d)
-        ok = (np.abs(np.asarray(ours[0]) - ref_d) <= 1e-4) & (
-            np.asarray(ours[1]) == np.where(ref_d < 0, -1, ref_g)
-        )
+
+        def agreement(out, ref_d=ref_d, ref_g=ref_g):
+            return (np.abs(np.asarray(out[0]) - ref_d) <= 1e-4) & (
+                np.asarray(out[1]) == np.where(ref_d < 0, -1, ref_g)
+            )
+
+        ok, ok_jax = agreement(ours), agreement(ours_j)
         idle = {k: [] for k in backends}
         loop = {k: [] for k in backends}
         for _ in range(args.repeats):
@@ -320,7 +331,10 @@ def main():
                 block = jax.block_until_ready if k.startswith("ours") else (lambda x: x)
                 idle[k].append(median_time(fn, block))
                 loop[k].append(np.median([median_time(fn, block) for _ in range(args.calls)]))
-        print(f"\n== {name}: {len(dirs)} rays (ours: first call incl. compile {first:.2f} s)")
+        print(
+            f"\n== {name}: {len(dirs)} rays (first call incl. compile: ours {first:.2f} s, "
+            f"jax caster {first_jax:.2f} s)"
+        )
         for note in notes:
             print("  " + note)
         print(f"  {'':28s} {'after idle':>22s} {'back to back':>24s}")
@@ -337,7 +351,10 @@ def main():
             best = min(v for k, v in t.items() if not k.startswith("ours"))
             ratios = ", ".join(f"{k} {best / v:.2f}x" for k, v in t.items() if k.startswith("ours"))
             print(f"  speed-up over the best other backend, {mode}: {ratios}")
-        print(f"  agreement with mj_multiRay (1e-4 m, hit/miss, geom): {ok.mean() * 100:.4f} %")
+        print(
+            f"  agreement with mj_multiRay (1e-4 m, hit/miss, geom): ours {ok.mean() * 100:.4f} %,"
+            f" jax caster {ok_jax.mean() * 100:.4f} %"
+        )
 
 
 if __name__ == "__main__":

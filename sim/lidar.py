@@ -5,6 +5,8 @@ hit beyond ``max_range``, gives distance -1 and geom id -1; rays starting inside
 hit its far side; planes only from the front; invisible geoms, ``geomgroup``, ``flg_static``
 and ``bodyexclude`` filter as in ``mj_ray``). Kernels live in ``_lidar_kernels.py``; see
 docs/SIMULATOR.md ("## Lidar") for the algorithm and the grazing-incidence discussion.
+Where warp-lang is not installed, ``method="jax"`` (``_lidar_jax.py``, the same arithmetic
+as array code, no culling) casts on any JAX backend, and is the default there.
 
 Example:
   >>> m = mujoco.MjModel.from_xml_string(xml)
@@ -16,15 +18,15 @@ from __future__ import annotations
 
 import functools
 import os
+import warnings
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-import warp as wp
 from flax import struct
 
-from . import _lidar_kernels as K
+from . import _lidar_jax
 
 SUPPORTED_TYPES = {
     int(mujoco.mjtGeom.mjGEOM_PLANE): "plane",
@@ -51,6 +53,8 @@ class SceneGeometry:
       rbound: float32 [B, G], bounding-sphere radius about ``pos`` (1e30: unbounded).
       enabled: int32 [B, G], 1 for geoms that rays may hit (after all filters).
       front: int32 [B, G], 1 for planes (hit from their +z side only).
+      types: static (not a pytree leaf) tuple of the G ``mjtGeom`` ids, or None; the
+        "jax" caster casts one type at a time when it is known.
     """
 
     geom_type: jax.Array
@@ -61,6 +65,7 @@ class SceneGeometry:
     rbound: jax.Array
     enabled: jax.Array
     front: jax.Array
+    types: tuple[int, ...] | None = struct.field(pytree_node=False, default=None)
 
 
 def _static_np(x, name: str) -> np.ndarray:
@@ -167,6 +172,7 @@ def scene_geometry(
         rbound=rbound,
         enabled=enabled.astype(jnp.int32),
         front=front,
+        types=tuple(int(t) for t in geom_type),
     )
 
 
@@ -257,25 +263,74 @@ def default_cells_per_edge(num_rays: int) -> int:
 
 # Kernel, number of outputs, inputs indexed by the second launch axis, cost of one launch
 # item in rays (for the one-thread threshold of ``_lidar_kernels.launch_split``).
-_KERNELS = {
-    "brute": (K.cast_brute, 2, ("dirs",), 1),
-    "build": (K.build_bins, 4, ("bin_axis", "bin_cos", "bin_sin"), K.CELL_COST),
-    "binned": (K.cast_binned, 2, ("dirs",), 1),
-    "fused": (K.build_and_cast_cpu, 6, (), 1),  # CPU only, one thread
-}
+METHODS = ("binned", "brute", "jax")
+
+
+@functools.cache
+def _warp():
+    """``(warp, _lidar_kernels)``, imported on first use so the "jax" method needs no Warp."""
+    try:
+        import warp as wp
+    except ImportError as e:
+        raise ImportError(
+            "the 'binned' and 'brute' ray casters need warp-lang (pip install warp-lang); "
+            "method='jax' casts without it"
+        ) from e
+    from . import _lidar_kernels
+
+    return wp, _lidar_kernels
+
+
+def warp_available() -> bool:
+    """Whether warp-lang can be imported (it decides the default ``method``)."""
+    try:
+        _warp()
+    except ImportError:
+        return False
+    return True
+
+
+@functools.cache
+def default_method() -> str:
+    """The caster used when ``method`` is None: ``$INDOORBEV_LIDAR_METHOD`` if set, else
+    "binned" (Warp), or "jax" with a warning where warp-lang is not installed."""
+    env = os.environ.get("INDOORBEV_LIDAR_METHOD", "")
+    if env:
+        if env not in METHODS:
+            raise ValueError(f"INDOORBEV_LIDAR_METHOD must be one of {METHODS}, got {env!r}")
+        return env
+    if warp_available():
+        return "binned"
+    warnings.warn(
+        "warp-lang is not installed: casting lidar rays with the pure-JAX caster "
+        "(method='jax', every ray against every geom; fine on a GPU, slow on a CPU)",
+        stacklevel=3,
+    )
+    return "jax"
+
+
+def _kernels(name: str):
+    wp, K = _warp()
+    return {
+        "brute": (K.cast_brute, 2, ("dirs",), 1),
+        "build": (K.build_bins, 4, ("bin_axis", "bin_cos", "bin_sin"), K.CELL_COST),
+        "binned": (K.cast_binned, 2, ("dirs",), 1),
+        "fused": (K.build_and_cast_cpu, 6, (), 1),  # CPU only, one thread
+    }[name]
 
 
 @functools.cache
 def _ffi(name: str):
     """One Warp launch per call (CUDA, or a CPU caster told to use one thread)."""
-    kernel, nout, _, _ = _KERNELS[name]
-    return wp.jax_kernel(kernel, num_outputs=nout)
+    kernel, nout, _, _ = _kernels(name)
+    return _warp()[0].jax_kernel(kernel, num_outputs=nout)
 
 
 @functools.cache
 def _ffi_threads(name: str):
     """The launch shared over CPU threads (``_lidar_kernels.launch_split``)."""
-    kernel, nout, split, cost = _KERNELS[name]
+    kernel, nout, split, cost = _kernels(name)
+    wp, K = _warp()
     return wp.jax_callable(
         K.threaded(kernel, nout, split, cost), num_outputs=nout, vmap_method=None
     )
@@ -374,6 +429,7 @@ def _cast_impl(geo: SceneGeometry, dirs, origin, max_range, *, method, cells, ca
                               launch_dims=(nscene, chunks), output_dims=ray_dims)  # fmt: skip
 
     def on_cpu(*args):
+        K = _warp()[1]
         per = K.CPU_RAYS_PER_THREAD
         ray_split = K.split_threads(threads, nscene, nray)
         cell_split = K.split_threads(threads, nscene, ncell, K.CELL_COST)
@@ -427,13 +483,34 @@ def _batched_caster(method: str, cells: int, capacity: int, threads: int):
     return cast
 
 
+# Elements of one [B, R, G] array the "jax" caster holds at once; more rays go in chunks.
+JAX_CHUNK_ELEMENTS = 1 << 25
+
+
+def _cast_jax(geo: SceneGeometry, dirs, origin, max_range):
+    """The "jax" method: dirs [B, R, 3], origin [B, 3], max_range [B]."""
+    local, _ = _sensor_frame(geo, origin)
+    nscene, nray = dirs.shape[:2]
+    ngeom = geo.geom_type.shape[1]
+    chunk = max(1, JAX_CHUNK_ELEMENTS // max(1, nscene * ngeom))
+    fields = (geo.geom_type, geo.size, geo.mat, local, geo.rbound, geo.enabled)
+    if nray <= chunk:
+        return _lidar_jax.cast(*fields, dirs, max_range, geo.types)
+    nchunk = -(-nray // chunk)
+    padded = jnp.pad(dirs, ((0, 0), (0, nchunk * chunk - nray), (0, 0)), constant_values=1.0)
+    pieces = padded.reshape(nscene, nchunk, chunk, 3).transpose(1, 0, 2, 3)
+    dist, gid = jax.lax.map(lambda d: _lidar_jax.cast(*fields, d, max_range, geo.types), pieces)
+    unchunk = lambda x: x.transpose(1, 0, 2).reshape(nscene, -1)[:, :nray]  # noqa: E731
+    return unchunk(dist), unchunk(gid)
+
+
 def cast_geometry(
     geo: SceneGeometry,
     origins: jax.Array,
     directions: jax.Array,
     max_range,
     *,
-    method: str = "binned",
+    method: str | None = None,
     cells_per_edge: int | None = None,
     capacity: int = DEFAULT_CAPACITY,
     cpu_threads: int | None = None,
@@ -447,17 +524,21 @@ def cast_geometry(
     if directions.shape[-1:] != (3,) or directions.ndim not in (2, 3):
         raise ValueError(f"directions must be [R, 3] or [B, R, 3], got {directions.shape}")
     single = origins.ndim == 1 and directions.ndim == 2
-    if method not in ("binned", "brute"):
-        raise ValueError(f"method must be 'binned' or 'brute', got {method!r}")
+    method = default_method() if method is None else method
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS} (or None), got {method!r}")
     nray = directions.shape[-2]
     dirs = jnp.broadcast_to(directions.reshape(-1, nray, 3), (nscene, nray, 3))
     origin = jnp.broadcast_to(origins.reshape(-1, 3), (nscene, 3))
     mr = jnp.broadcast_to(jnp.asarray(max_range, jnp.float32).reshape(-1), (nscene,))
-    cells = default_cells_per_edge(nray) if cells_per_edge is None else int(cells_per_edge)
-    threads = default_cpu_threads() if cpu_threads is None else int(cpu_threads)
-    if threads < 1:
-        raise ValueError(f"cpu_threads must be >= 1, got {cpu_threads}")
-    dist, gid = _batched_caster(method, cells, int(capacity), threads)(geo, dirs, origin, mr)
+    if method == "jax":
+        dist, gid = _cast_jax(geo, dirs, origin, mr)
+    else:
+        cells = default_cells_per_edge(nray) if cells_per_edge is None else int(cells_per_edge)
+        threads = default_cpu_threads() if cpu_threads is None else int(cpu_threads)
+        if threads < 1:
+            raise ValueError(f"cpu_threads must be >= 1, got {cpu_threads}")
+        dist, gid = _batched_caster(method, cells, int(capacity), threads)(geo, dirs, origin, mr)
     if single and nscene == 1:
         return dist[0], gid[0]
     return dist, gid
@@ -474,7 +555,7 @@ def cast_rays(
     flg_static: bool = True,
     bodyexclude: int = -1,
     skip_unsupported: bool = False,
-    method: str = "binned",
+    method: str | None = None,
     cells_per_edge: int | None = None,
     capacity: int = DEFAULT_CAPACITY,
     cpu_threads: int | None = None,
@@ -495,16 +576,20 @@ def cast_rays(
       flg_static: include geoms of bodies welded to the world (``mj_ray``'s flg_static).
       bodyexclude: body id whose geoms are ignored (-1: none).
       skip_unsupported: ignore mesh/hfield/sdf geoms instead of raising ValueError.
-      method: "binned" (cube-map culling, default) or "brute" (every geom per ray).
-      cells_per_edge: cube-map resolution (static); default from R.
+      method: "binned" (Warp, cube-map culling), "brute" (Warp, every geom per ray) or
+        "jax" (pure JAX, every geom per ray: any backend, no warp-lang needed); None:
+        ``default_method()``, i.e. "binned", or "jax" where warp-lang is not installed.
+      cells_per_edge: cube-map resolution (static); default from R. Warp methods only.
       capacity: candidate list length per cell (static); overflowing cells stay exact.
-      cpu_threads: threads sharing each launch on the CPU (static); None: every core this
-        process may use. Results do not depend on it; on CUDA it is ignored.
+      cpu_threads: threads sharing each Warp launch on the CPU (static); None: every core
+        this process may use. Results do not depend on it; on CUDA it is ignored.
 
     Returns:
       distance: float32 [R] or [B, R], along the ray (in units of |direction|), -1 on a miss.
       geom_id: int32 [R] or [B, R], the hit geom, -1 on a miss.
     """
+    if method is not None and method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS} (or None), got {method!r}")
     geo = scene_geometry(
         model,
         data,

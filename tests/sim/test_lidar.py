@@ -58,7 +58,7 @@ _cast = {
     method: jax.jit(
         lambda mx, dx, o, v, method=method: lidar.cast_rays(mx, dx, o, v, MAX_RANGE, method=method)
     )
-    for method in ("binned", "brute")
+    for method in ("binned", "brute", "jax")
 }
 
 
@@ -73,7 +73,7 @@ def scenes():
     return out
 
 
-@pytest.mark.parametrize("method", ["binned", "brute"])
+@pytest.mark.parametrize("method", ["binned", "brute", "jax"])
 def test_matches_mj_ray_on_random_scenes(scenes, method):
     """>= 99.99 % of rays agree with mj_ray within 1e-4 m, hit/miss and geom id included."""
     rng = np.random.default_rng(1)
@@ -118,6 +118,42 @@ def test_batched_and_vmapped_scenes_match_single(scenes):
         np.testing.assert_array_equal(np.asarray(gid_v[b]), np.asarray(gid_1))
         np.testing.assert_allclose(np.asarray(dist_b[b]), np.asarray(dist_1), atol=1e-5)
         np.testing.assert_allclose(np.asarray(dist_v[b]), np.asarray(dist_1), atol=1e-5)
+
+
+def test_jax_caster_batched_vmapped_and_chunked_equal_warp_brute(scenes, monkeypatch):
+    """The pure-JAX caster, over B scenes in one call, under vmap, in ray chunks (a chunk
+    size that does not divide R) and with the geom types traced, hits the same geoms as
+    Warp's brute kernel."""
+    rng = np.random.default_rng(8)
+    m, d, mx, _ = scenes[2]
+    datas, origins = [], rng.uniform(-2, 2, (3, 3)).astype(np.float32)
+    for _ in range(3):
+        d2 = mujoco.MjData(m)
+        mujoco.mj_forward(m, d2)
+        d2.geom_xpos[:] += rng.uniform(-0.5, 0.5, d2.geom_xpos.shape)
+        datas.append(mjx.put_data(m, d2))
+    dx_b = jax.tree.map(lambda *x: jnp.stack(x), *datas)
+    dirs = jnp.asarray(unit_rays(rng, 3001))
+    ref = [
+        _cast["brute"](mx, dx, jnp.asarray(o), dirs) for dx, o in zip(datas, origins, strict=True)
+    ]
+    dist_b, gid_b = _cast["jax"](mx, dx_b, jnp.asarray(origins), dirs)
+    vm = jax.jit(jax.vmap(lambda dx, o: lidar.cast_rays(mx, dx, o, dirs, MAX_RANGE, method="jax")))
+    dist_v, gid_v = vm(dx_b, jnp.asarray(origins))
+    monkeypatch.setattr(lidar, "JAX_CHUNK_ELEMENTS", 3 * m.ngeom * 700)  # 5 chunks of 700
+    dist_c, gid_c = lidar.cast_rays(mx, dx_b, jnp.asarray(origins), dirs, MAX_RANGE, method="jax")
+    for b, (dist_1, gid_1) in enumerate(ref):
+        for dist, gid in ((dist_b, gid_b), (dist_v, gid_v), (dist_c, gid_c)):
+            np.testing.assert_array_equal(np.asarray(gid[b]), np.asarray(gid_1))
+            np.testing.assert_allclose(
+                np.asarray(dist[b]), np.asarray(dist_1), rtol=2e-6, atol=1e-6
+            )
+    np.testing.assert_array_equal(np.asarray(dist_c), np.asarray(dist_b))
+    # Without the static per-geom types every routine runs under a select: same answer.
+    geo = lidar.scene_geometry(mx, dx_b).replace(types=None)
+    dist_s, gid_s = lidar.cast_geometry(geo, jnp.asarray(origins), dirs, MAX_RANGE, method="jax")
+    np.testing.assert_array_equal(np.asarray(gid_s), np.asarray(gid_b))
+    np.testing.assert_array_equal(np.asarray(dist_s), np.asarray(dist_b))
 
 
 def test_cpu_threads_split_launches_without_changing_results(scenes, monkeypatch):
@@ -173,7 +209,8 @@ def test_cpu_threads_split_launches_without_changing_results(scenes, monkeypatch
         lidar.cast_rays(mx, mjx.put_data(m, d), origins[0], dirs, MAX_RANGE, cpu_threads=0)
 
 
-def test_filters_max_range_and_plane_conventions():
+@pytest.mark.parametrize("method", ["binned", "jax"])
+def test_filters_max_range_and_plane_conventions(method):
     """geomgroup / flg_static / bodyexclude / invisible geoms / max_range follow mj_ray."""
     xml = """<mujoco><default><geom contype="0" conaffinity="0"/></default><worldbody>
       <geom type="plane" size="1 1 1" pos="0 0 -1"/>
@@ -198,11 +235,13 @@ def test_filters_max_range_and_plane_conventions():
     for kw in cases:
         for max_range in (30.0, 1.9):
             ref_d, ref_g = mj_ray_reference(m, d, origin, dirs, max_range, **kw)
-            dist, gid = lidar.cast_rays(mx, dx, jnp.asarray(origin), dirs, max_range, **kw)
+            dist, gid = lidar.cast_rays(
+                mx, dx, jnp.asarray(origin), dirs, max_range, method=method, **kw
+            )
             np.testing.assert_array_equal(np.asarray(gid), ref_g, err_msg=str(kw))
             np.testing.assert_allclose(np.asarray(dist), ref_d, atol=1e-4)
     # The finite plane is hit from above only: from below every ray misses it.
-    dist, gid = lidar.cast_rays(mx, dx, jnp.array([0.0, 0.0, -1.5]), dirs, 30.0)
+    dist, gid = lidar.cast_rays(mx, dx, jnp.array([0.0, 0.0, -1.5]), dirs, 30.0, method=method)
     assert not np.any(np.asarray(gid) == 0)
 
 
@@ -303,3 +342,19 @@ def test_kernels_compile_for_cuda(tmp_path):
 
     out = wp.compile_aot_module(K, arch=90, module_dir=tmp_path, use_ptx=True)
     assert any(str(p).endswith(".sm90.ptx") for p in out), out
+
+
+def test_default_method_follows_the_environment(monkeypatch):
+    """INDOORBEV_LIDAR_METHOD picks the caster; a bad value is named; unset, Warp's binned."""
+    for value, want in (("jax", "jax"), ("brute", "brute"), ("", "binned")):
+        monkeypatch.setenv("INDOORBEV_LIDAR_METHOD", value)
+        lidar.default_method.cache_clear()
+        assert lidar.default_method() == want
+    monkeypatch.setenv("INDOORBEV_LIDAR_METHOD", "bvh")
+    lidar.default_method.cache_clear()
+    with pytest.raises(ValueError, match="INDOORBEV_LIDAR_METHOD must be one of"):
+        lidar.default_method()
+    monkeypatch.delenv("INDOORBEV_LIDAR_METHOD")
+    lidar.default_method.cache_clear()
+    with pytest.raises(ValueError, match="method must be one of"):
+        lidar.cast_rays(None, None, jnp.zeros(3), jnp.ones((2, 3)), 1.0, method="bvh")
