@@ -265,7 +265,7 @@ def make_train_step(
         metrics = {
             "loss": loss,
             "learning_rate": lr,
-            "grad_norm": optax.global_norm(grads),
+            "grad_norm": optax.tree.norm(grads),
             "finite": finite,
             **{k: v for k, v in parts.items() if k != "num_targets"},
         }
