@@ -137,13 +137,13 @@ def _box(p, v, size):
     return jnp.where(out | (tnear > tfar), _MISS, x)
 
 
-_ROUTINES = {
-    BOX: lambda p, v, sz: _box(p, v, sz),
-    PLANE: lambda p, v, sz: _plane(p, v, sz),
+_ROUTINES = {  # each (p, v, size) -> distance
+    BOX: _box,
+    PLANE: _plane,
     SPHERE: lambda p, v, sz: _sphere(p, v, sz[0]),
-    CAPSULE: lambda p, v, sz: _capsule(p, v, sz),
-    CYLINDER: lambda p, v, sz: _cylinder(p, v, sz),
-    ELLIPSOID: lambda p, v, sz: _ellipsoid(p, v, sz),
+    CAPSULE: _capsule,
+    CYLINDER: _cylinder,
+    ELLIPSOID: _ellipsoid,
 }
 
 

@@ -261,8 +261,6 @@ def default_cells_per_edge(num_rays: int) -> int:
 # ----------------------------------------------------------------------------- Warp bridge
 
 
-# Kernel, number of outputs, inputs indexed by the second launch axis, cost of one launch
-# item in rays (for the one-thread threshold of ``_lidar_kernels.launch_split``).
 METHODS = ("binned", "brute", "jax")
 
 
@@ -309,8 +307,18 @@ def default_method() -> str:
     return "jax"
 
 
+def _resolve_method(method: str | None) -> str:
+    """``method``, or ``default_method()`` for None; a ValueError for an unknown name."""
+    method = default_method() if method is None else method
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS} (or None), got {method!r}")
+    return method
+
+
 def _kernels(name: str):
-    wp, K = _warp()
+    """Kernel, number of outputs, inputs indexed by the second launch axis, cost of one
+    launch item in rays (for the one-thread threshold of ``_lidar_kernels.launch_split``)."""
+    K = _warp()[1]
     return {
         "brute": (K.cast_brute, 2, ("dirs",), 1),
         "build": (K.build_bins, 4, ("bin_axis", "bin_cos", "bin_sin"), K.CELL_COST),
@@ -524,9 +532,7 @@ def cast_geometry(
     if directions.shape[-1:] != (3,) or directions.ndim not in (2, 3):
         raise ValueError(f"directions must be [R, 3] or [B, R, 3], got {directions.shape}")
     single = origins.ndim == 1 and directions.ndim == 2
-    method = default_method() if method is None else method
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS} (or None), got {method!r}")
+    method = _resolve_method(method)
     nray = directions.shape[-2]
     dirs = jnp.broadcast_to(directions.reshape(-1, nray, 3), (nscene, nray, 3))
     origin = jnp.broadcast_to(origins.reshape(-1, 3), (nscene, 3))
@@ -588,8 +594,7 @@ def cast_rays(
       distance: float32 [R] or [B, R], along the ray (in units of |direction|), -1 on a miss.
       geom_id: int32 [R] or [B, R], the hit geom, -1 on a miss.
     """
-    if method is not None and method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS} (or None), got {method!r}")
+    method = _resolve_method(method)  # before any work on the model
     geo = scene_geometry(
         model,
         data,
