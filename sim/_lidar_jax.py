@@ -16,14 +16,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-MINVAL = 1.0e-15  # mjMINVAL
-BIG = 1.0e30
-BOUND_REL = 1.0e-4  # the bounding-sphere reject's slack, as the kernels'
-BOUND_ABS = 1.0e-4
-_MISS = -1.0
+from ._ray_constants import (
+    BIG,
+    BOUND_ABS,
+    BOUND_REL,
+    BOX,
+    CAPSULE,
+    CYLINDER,
+    ELLIPSOID,
+    MINVAL,
+    PLANE,
+    SPHERE,
+)
 
-# mujoco.mjtGeom ids.
-PLANE, SPHERE, CAPSULE, ELLIPSOID, CYLINDER, BOX = 0, 2, 3, 4, 5, 6
+_MISS = -1.0
 
 
 def _dot(a, b):

@@ -28,24 +28,23 @@ from concurrent.futures import ThreadPoolExecutor
 
 import warp as wp
 
+from . import _ray_constants as rc
+
 wp.config.quiet = True
 # Forward only: nothing differentiates through a ray cast, and it halves the compile time.
 wp.set_module_options({"enable_backward": False})
 
-# Type ids follow mujoco.mjtGeom.
-GEOM_PLANE = wp.constant(0)
-GEOM_SPHERE = wp.constant(2)
-GEOM_CAPSULE = wp.constant(3)
-GEOM_ELLIPSOID = wp.constant(4)
-GEOM_CYLINDER = wp.constant(5)
-GEOM_BOX = wp.constant(6)
-
-MINVAL = wp.constant(1.0e-15)  # mjMINVAL
-BIG = wp.constant(1.0e30)
-# Slack on the culling bounds: they are computed in float32, so shrink them a little to
-# stay conservative (a too-small lower bound only costs a test, a too-large one a miss).
-BOUND_REL = wp.constant(1.0e-4)
-BOUND_ABS = wp.constant(1.0e-4)
+# Warp kernels read module-level constants only through wp.constant.
+GEOM_PLANE = wp.constant(rc.PLANE)
+GEOM_SPHERE = wp.constant(rc.SPHERE)
+GEOM_CAPSULE = wp.constant(rc.CAPSULE)
+GEOM_ELLIPSOID = wp.constant(rc.ELLIPSOID)
+GEOM_CYLINDER = wp.constant(rc.CYLINDER)
+GEOM_BOX = wp.constant(rc.BOX)
+MINVAL = wp.constant(rc.MINVAL)
+BIG = wp.constant(rc.BIG)
+BOUND_REL = wp.constant(rc.BOUND_REL)
+BOUND_ABS = wp.constant(rc.BOUND_ABS)
 
 
 @wp.func

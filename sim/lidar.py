@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import os
+import sys
 import warnings
 
 import jax
@@ -27,16 +28,16 @@ import numpy as np
 from flax import struct
 
 from . import _lidar_jax
+from . import _ray_constants as rc
 
 SUPPORTED_TYPES = {
-    int(mujoco.mjtGeom.mjGEOM_PLANE): "plane",
-    int(mujoco.mjtGeom.mjGEOM_SPHERE): "sphere",
-    int(mujoco.mjtGeom.mjGEOM_CAPSULE): "capsule",
-    int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid",
-    int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinder",
-    int(mujoco.mjtGeom.mjGEOM_BOX): "box",
+    rc.PLANE: "plane",
+    rc.SPHERE: "sphere",
+    rc.CAPSULE: "capsule",
+    rc.ELLIPSOID: "ellipsoid",
+    rc.CYLINDER: "cylinder",
+    rc.BOX: "box",
 }
-_BIG = 1.0e30
 DEFAULT_CAPACITY = 16
 
 
@@ -180,7 +181,7 @@ def _bounds(geom_type: np.ndarray, size: jax.Array) -> tuple[jax.Array, jax.Arra
     """Local bounding-box half extents [B, G, 3] and bounding-sphere radius [B, G]."""
     r, h = size[..., 0], size[..., 1]
     t = jnp.asarray(geom_type)[None, :, None]
-    big = jnp.float32(_BIG)
+    big = jnp.float32(rc.BIG)
     plane = jnp.stack(
         [jnp.where(r > 0, r, big), jnp.where(h > 0, h, big), jnp.zeros_like(r)], axis=-1
     )
@@ -302,9 +303,31 @@ def default_method() -> str:
     warnings.warn(
         "warp-lang is not installed: casting lidar rays with the pure-JAX caster "
         "(method='jax', every ray against every geom; fine on a GPU, slow on a CPU)",
-        stacklevel=3,
+        stacklevel=_caller_stacklevel(),
     )
     return "jax"
+
+
+def _caller_stacklevel() -> int:
+    """The ``warnings.warn`` stack level, for a warning raised by our caller, of the first
+    frame outside our packages, JAX, Flax and the standard library: the user's line, however
+    deep inside a trace the warning was raised."""
+    import contextlib
+
+    import flax
+    import jaxlib
+
+    modules = [jax, jaxlib, flax, sys.modules[__package__], sys.modules.get("indoorbev_jax")]
+    packages = tuple(os.path.dirname(m.__file__) + os.sep for m in modules if m is not None)
+    stdlib = os.path.dirname(contextlib.__file__)
+
+    def internal(filename: str) -> bool:
+        return filename.startswith(packages) or os.path.dirname(filename) == stdlib
+
+    frame, level = sys._getframe(2), 2
+    while frame.f_back is not None and internal(frame.f_code.co_filename):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def _resolve_method(method: str | None) -> str:
@@ -388,7 +411,7 @@ def _sensor_frame(geo: SceneGeometry, origin: jax.Array) -> tuple[jax.Array, jax
     dif = geo.pos - origin[:, None, :]  # [B, G, 3] origin -> centre
     local = jnp.einsum("bgji,bgj->bgi", geo.mat, -dif)
     d = jnp.linalg.norm(dif, axis=-1)  # [B, G]
-    has_cone = (geo.rbound < _BIG) & (d > geo.rbound)
+    has_cone = (geo.rbound < rc.BIG) & (d > geo.rbound)
     sin_a = jnp.where(has_cone, geo.rbound / jnp.where(has_cone, d, 1.0), 1.0)
     unit = dif / jnp.where(d > 0, d, 1.0)[..., None]
     return local, jnp.concatenate([unit, sin_a[..., None]], -1).astype(jnp.float32)

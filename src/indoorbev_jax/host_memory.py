@@ -8,7 +8,12 @@ was 9 s of system time in a 13 s step (docs/BENCHMARKS.md, "Fresh pages every st
 
 ``retain_freed_memory`` tells glibc to serve every block from its main heap (one arena,
 no ``mmap``) and never to trim that heap, so a step mostly reuses the pages of the steps
-before: the ``paper`` train step at batch 2 took 16.8 s instead of 29.1 s. The price, and
+before: the ``paper`` train step at batch 2 took 16.8 s instead of 29.1 s (AMD EPYC VM). The
+one arena is needed: XLA allocates the temporaries on JAX's worker threads, and a thread's
+own arena cannot hold a block over its 64 MiB heap size and maps it even with ``M_MMAP_MAX``
+at 0 (without the cap, tests/test_host_memory.py's 66 MiB temporary was faulted in on every
+call). The cap also puts every thread behind one malloc lock, which cost 1.1-1.2x on an Intel
+Xeon VM (docs/BENCHMARKS.md, "The one-arena cap"). The price, and
 why it is opt-in: resident memory never shrinks, and small allocations that land in the
 freed blocks fragment the heap, so it keeps growing for a while (in a 64 MiB-temporary
 probe, to 4-8 temporaries' worth over 30 calls; the paper step peaked at 12.3 GiB RSS for
