@@ -13,14 +13,15 @@ one arena is needed: XLA allocates the temporaries on JAX's worker threads, and 
 own arena cannot hold a block over its 64 MiB heap size and maps it even with ``M_MMAP_MAX``
 at 0 (without the cap, tests/test_host_memory.py's 66 MiB temporary was faulted in on every
 call). The cap also puts every thread behind one malloc lock, which cost 1.1-1.2x on an Intel
-Xeon VM (docs/BENCHMARKS.md, "The one-arena cap"). The price, and why it is opt-in:
-resident memory never shrinks, and small allocations that land in the freed blocks fragment
-the heap, so it keeps growing for a while (in a 64 MiB-temporary probe, to 4-8 temporaries'
-worth over 30 calls; the paper step peaked at 12.3 GiB RSS for 11.1 GiB of XLA buffers). With ``INDOORBEV_RETAIN_MEMORY=1`` in the environment, importing
-``indoorbev_jax`` applies it (so every experiment script and both commands do);
-``retain_freed_memory(force=True)`` applies it without the variable. It does nothing on a
-C library other than glibc, and threads that allocated before it keep their own arenas, so
-it has to come before the first JAX computation.
+Xeon VM (docs/BENCHMARKS.md, "The one-arena cap"). The price, and why it is opt-in: resident
+memory never shrinks, and small allocations that land in the freed blocks fragment the heap,
+so it keeps growing for a while (in a 64 MiB-temporary probe, to 4-8 temporaries' worth over
+30 calls; the paper step peaked at 12.3 GiB RSS for 11.1 GiB of XLA buffers). With
+``INDOORBEV_RETAIN_MEMORY=1`` in the environment, importing ``indoorbev_jax`` applies it (so
+every experiment script and both commands do); ``retain_freed_memory(force=True)`` applies
+it without the variable. It does nothing on a C library other than glibc, and threads that
+allocated before it keep their own arenas, so it has to come before the first JAX
+computation.
 """
 
 from __future__ import annotations
