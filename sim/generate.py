@@ -109,6 +109,33 @@ def front_order(keep: jax.Array) -> jax.Array:
     return jax.vmap(scatter)(flat).reshape(keep.shape)
 
 
+def spread_positions(count: jax.Array, n: int) -> jax.Array:
+    """``floor(k * count / n)`` for k in 0..n-1 where ``count > n``, else k: which of ``count``
+    kept returns fill ``n`` slots, evenly spread over the scan order (the rule of
+    ``indoorbev_jax.data.dataset.pad_points``).
+
+    Computed as ``k * (count // n) + floor(k * (count % n) / n)``: exact in int32 up to
+    n = 46340 (the second product stays under n^2); beyond that the second term is float32,
+    which may put a slot one return off.
+
+    Args:
+      count: int [...] kept returns per frame.
+      n: slots (static).
+
+    Returns:
+      int32 [..., n].
+    """
+    count = count.astype(jnp.int32)[..., None]
+    k = jnp.arange(n, dtype=jnp.int32)
+    rest = count % n
+    if n * n < 2**31:
+        part = k * rest // n
+    else:
+        part = jnp.floor(k * (rest.astype(jnp.float32) / n)).astype(jnp.int32)
+    pos = jnp.minimum(k * (count // n) + part, count - 1)
+    return jnp.where(count > n, pos, k)
+
+
 def _yaw_matrix(yaw: jax.Array) -> jax.Array:
     c, s, z, o = jnp.cos(yaw), jnp.sin(yaw), jnp.zeros_like(yaw), jnp.ones_like(yaw)
     return jnp.stack(
@@ -186,12 +213,14 @@ def simulate(
         instance_ids=jax.vmap(instance_ids_from_masks)(masks, tvalid),
     )
 
-    # Points: valid returns first, padded or cut to N.
+    # Points: valid returns first, padded to N; of more than N, N spread over the scan order
+    # (a spinning pattern then loses density everywhere, not a sector).
     r = valid.shape[1]
     porder = front_order(valid)  # [B, R]
     if r < n:
-        porder = jnp.concatenate([porder, jnp.full((porder.shape[0], n - r), r)], 1)
-    psel = porder[:, :n]  # [B, N]
+        psel = jnp.concatenate([porder, jnp.full((porder.shape[0], n - r), r)], 1)
+    else:
+        psel = jnp.take_along_axis(porder, spread_positions(valid.sum(-1), n), 1)  # [B, N]
 
     def ptake(x, fill):
         x = jnp.concatenate([x, jnp.full_like(x[:, :1], fill)], 1)

@@ -72,13 +72,30 @@ def test_mask_file_gives_true_shape_and_empty_cloud_is_valid(tmp_path):
     assert batch.targets.masks.shape == (3, CFG.data.max_objects, *CFG.grid.shape)
 
 
-def test_more_points_than_max_keeps_the_first(tmp_path):
+def test_more_points_than_max_keeps_an_even_spread(tmp_path):
     cfg = Config.tiny()
-    pts = np.random.default_rng(0).uniform(-2.5, 2.5, (3000, 4)).astype(np.float32)
+    n = cfg.data.max_points
+    # A spinning lidar's scan: points in azimuth order, some invalid among them.
+    rng = np.random.default_rng(0)
+    azimuth = np.sort(rng.uniform(-np.pi, np.pi, 3 * n + 17))
+    radius = rng.uniform(0.5, 2.0, azimuth.shape)
+    pts = np.stack(
+        [radius * np.cos(azimuth), radius * np.sin(azimuth), rng.uniform(-1, 1, azimuth.shape),
+         rng.uniform(0, 1, azimuth.shape)], 1
+    ).astype(np.float32)  # fmt: skip
+    pts[::7, 2] = np.nan
     kitti.write_frame(tmp_path, "a", pts, kitti.ObjectLabels.empty(), CLASS_NAMES)
     item, stats = KittiDataset(tmp_path, None, cfg).load(0)
-    assert stats.dropped_points == 3000 - cfg.data.max_points
-    np.testing.assert_array_equal(item.points, pts[: cfg.data.max_points])
+    valid = np.flatnonzero(np.isfinite(pts).all(1))
+    assert stats.nonfinite_points == len(pts) - len(valid)
+    assert stats.dropped_points == len(valid) - n and item.point_valid.all()
+    # Kept: the valid points at floor(k * count / n), in scan order.
+    expected = [valid[k * len(valid) // n] for k in range(n)]
+    np.testing.assert_array_equal(item.points, pts[expected])
+    # So the kept points cover every azimuth (the first n would leave a gap of about 3.8 rad).
+    kept_azimuth = azimuth[expected]
+    gaps = np.diff(np.concatenate([kept_azimuth, [kept_azimuth[0] + 2 * np.pi]]))
+    assert gaps.max() < 0.05
 
 
 def test_split_id_without_files_is_named(tmp_path):

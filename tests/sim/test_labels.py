@@ -129,6 +129,38 @@ def test_front_order_equals_stable_argsort(shape, p_keep):
     )
 
 
+@pytest.mark.parametrize("n", [1, 7, 2048, 46340, 46341])
+def test_spread_positions_equal_integer_floor(n):
+    rng = np.random.default_rng(n)
+    counts = np.concatenate([[0, 1, n - 1, n, n + 1, 2 * n, 3 * n - 1], rng.integers(0, 2**24, 25)])
+    got = np.asarray(jax.jit(generate.spread_positions, static_argnums=1)(jnp.asarray(counts), n))
+    k = np.arange(n, dtype=np.int64)
+    for c, row in zip(counts, got, strict=True):
+        expected = k * c // n if c > n else k
+        if n * n < 2**31:  # the int32 path is exact
+            np.testing.assert_array_equal(row, expected)
+        else:  # float32 beyond: within one position, never past the last return
+            assert np.abs(row - expected).max() <= 1 and row.max() < max(c, n), c
+        if c > n:
+            assert row.min() >= 0 and (np.diff(row) >= 0).all()
+
+
+def test_frames_past_max_points_keep_an_even_spread_of_the_returns():
+    def config(n):
+        tiny = Config.tiny()
+        return dataclasses.replace(tiny, data=dataclasses.replace(tiny.data, max_points=n))
+
+    key, n = jax.random.key(3), 512
+    batch = jax.jit(generate.generate_batch, static_argnums=(1,))
+    full, cut = batch(key, config(4096)), batch(key, config(n))  # 2,048 rays: never cut
+    for b in range(full.points.shape[0]):
+        returns = np.asarray(full.points[b])[np.asarray(full.point_valid[b])]
+        assert len(returns) > n
+        assert np.asarray(cut.point_valid[b]).all()
+        spread = np.arange(n) * len(returns) // n
+        np.testing.assert_array_equal(cut.points[b], returns[spread])
+
+
 FINE = GridConfig(x_range=(-2.0, 2.0), y_range=(-2.0, 2.0), cell_size=0.01)
 
 

@@ -9,8 +9,9 @@ items (numpy) with points ``[N_max, 4]`` + validity and targets padded to
 Rules for what does not fit:
   * NaN/Inf points and points outside the workspace (``grid`` x/y/z ranges) are marked
     invalid and counted, never an error;
-  * a frame with more valid points than ``data.max_points`` keeps the first
-    ``max_points`` valid ones (the excess is counted in ``FrameStats.dropped_points``);
+  * a frame with more valid points than ``data.max_points`` keeps ``max_points`` of them
+    evenly spread over the scan order, so a spinning lidar's scan loses density everywhere
+    instead of a whole sector (the excess is counted in ``FrameStats.dropped_points``);
   * a frame with more objects than ``data.max_objects`` keeps the first ones (counted in
     ``FrameStats.dropped_objects``).
 """
@@ -53,6 +54,11 @@ def pad_points(
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """Pads a raw cloud to ``[max_points, 4]`` with a validity mask.
 
+    Non-finite and out-of-workspace points are left out (counted). Of more than ``max_points`` valid
+    points, ``max_points`` evenly spaced in the input order are kept (deterministic; the order
+    is kept too): lidar drivers emit points by time or azimuth, so keeping the first ones
+    would cut whole sectors out of the scan.
+
     Returns:
       points float32 [max_points, 4] (invalid rows zeroed), valid bool [max_points], and
       counts of non-finite, out-of-workspace and dropped points.
@@ -62,7 +68,8 @@ def pad_points(
     inside = finite & in_workspace(points, grid)
     keep = np.flatnonzero(inside)
     dropped = max(0, len(keep) - max_points)
-    keep = keep[:max_points]
+    if dropped:
+        keep = keep[np.arange(max_points, dtype=np.int64) * len(keep) // max_points]
     out = np.zeros((max_points, 4), np.float32)
     out[: len(keep)] = points[keep]
     valid = np.zeros(max_points, bool)
