@@ -89,12 +89,22 @@ def evaluate_sim(config, params, split: str, frames: int, batch: int, seed: int,
 
 
 def evaluate_sim_sweep(
-    config, params, split: str, frames: int, batch: int, seed: int, inferences, progress=True
+    config,
+    params,
+    split: str,
+    frames: int,
+    batch: int,
+    seed: int,
+    inferences,
+    progress=True,
+    intensity_factor: float = 1.0,
 ) -> list[Evaluator]:
     """``evaluate_sim`` for several inference settings on the same frames, in one pass.
 
     Args:
       inferences: ``InferenceConfig`` per evaluator (``config.inference`` is not used).
+      intensity_factor: the simulated intensity is multiplied by this before the model sees
+        it (1: as simulated), to measure what other intensity units do to the model.
 
     Returns:
       One ``Evaluator`` per entry of ``inferences``, each equal to ``evaluate_sim`` with
@@ -116,6 +126,7 @@ def evaluate_sim_sweep(
 
     @jax.jit
     def predict(params, points, valid):
+        points = points.at[..., 3].multiply(intensity_factor)
         predictions = model.apply(params, points, valid)
         return tuple(panoptic_inference(predictions, inference) for inference in inferences)
 
@@ -179,6 +190,13 @@ def main(argv=None) -> None:
         action="store_true",
         help="with a sweep, also print every setting's tables (default: the means only)",
     )
+    p.add_argument(
+        "--intensity-factor",
+        type=float,
+        default=1.0,
+        help="multiply the simulated intensity by this (150: a Livox driver's units fed raw; "
+        "0: a sensor without intensity)",
+    )
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     try:
@@ -198,7 +216,7 @@ def main(argv=None) -> None:
     start = time.perf_counter()
     evaluators = evaluate_sim_sweep(
         config, params, args.split, args.frames, args.batch, args.seed, inferences,
-        not args.no_progress,
+        not args.no_progress, args.intensity_factor,
     )  # fmt: skip
     from indoorbev_sim.objects import ALL_VARIANTS
 
@@ -206,7 +224,7 @@ def main(argv=None) -> None:
     names = [f"{v}*" if v in held_out else v for v in ALL_VARIANTS]
     title = "per object variant (* held out of train and val)"
     setup = {"model": str(args.model), "split": args.split, "frames": args.frames,
-             "seed": args.seed}  # fmt: skip
+             "seed": args.seed, "intensity_factor": args.intensity_factor}  # fmt: skip
     sweep = []
     for inference, evaluator in zip(inferences, evaluators, strict=True):
         text, payload = report(
@@ -218,6 +236,8 @@ def main(argv=None) -> None:
         sweep.append((inference, text, {**setting, **payload}))
     head = f"model {args.model} (preset {config.name}), {args.frames} simulated '{args.split}' " \
         f"frames, seed {args.seed}"  # fmt: skip
+    if args.intensity_factor != 1.0:
+        head += f", intensity x {args.intensity_factor:g}"
     seconds = f"{time.perf_counter() - start:.0f} s"
     if len(sweep) == 1:
         inference, text, payload = sweep[0]

@@ -129,3 +129,57 @@ def test_cli_predict_reports_bad_input_without_a_traceback(model_file, tmp_path,
     assert cli_main(["predict", str(tmp_path / "none.msgpack"), str(tmp_path), "--out",
                      str(tmp_path / "o")]) == 2  # fmt: skip
     assert "none.msgpack" in capsys.readouterr().err
+
+
+def test_dense_scan_is_thinned_evenly_and_said(model_file, tmp_path, capsys):
+    n = CFG.data.max_points
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-2.0, 2.0, (3 * n, 4)).astype(np.float32)
+    pts[:, 3] = rng.uniform(0.0, 1.0, 3 * n)
+    kitti.write_points(tmp_path / "dense.bin", pts)
+    summary = P.predict(model_file, tmp_path / "dense.bin", tmp_path / "o", pictures=False)
+    assert summary["thinned_frames"] == 1
+    printed = capsys.readouterr().out
+    assert f"{2 * n} of {3 * n} valid points left out (data.max_points={n}" in printed
+    config, params = P.load_model(model_file)
+    predictor = P.Predictor(config, params)
+    padded, valid, *_ = predictor(pts)
+    assert predictor.last_counts["dropped_points"] == 2 * n and valid.all()
+    np.testing.assert_array_equal(padded, pts[::3])  # every third: floor(k * 3n / n)
+
+
+def test_intensity_units_map_onto_the_simulators_range():
+    unit = np.array([[1.0, 0.0, 0.0, 0.4], [1.0, 1.0, 0.0, 1.0]], np.float32)
+    livox = np.array([[1.0, 0.0, 0.0, 75.0], [1.0, 1.0, 0.0, 255.0]], np.float32)
+    assert P.intensity_factor("auto", unit) == 1.0
+    assert P.intensity_factor("auto", livox) == pytest.approx(1 / 150)
+    assert P.intensity_factor("percent", livox) == pytest.approx(0.01)
+    assert P.intensity_factor(0.5, livox) == 0.5
+    # Livox: 150 is 100 % Lambertian reflectivity; retro-reflectors (151-255) clip to 1.
+    np.testing.assert_allclose(P.normalize_intensity(livox, 1 / 150)[:, 3], [0.5, 1.0])
+    np.testing.assert_array_equal(P.normalize_intensity(livox, 1 / 150)[:, :3], livox[:, :3])
+    with pytest.raises(ValueError, match=r"'lux'.*'livox', 'percent', 'unit'"):
+        P.intensity_factor("lux", unit)
+    with pytest.raises(ValueError, match="finite number >= 0"):
+        P.intensity_factor(-1.0, unit)
+
+
+def test_livox_cloud_gives_the_unit_clouds_prediction(model_file, tmp_path, capsys):
+    config, params = P.load_model(model_file)
+    rng = np.random.default_rng(2)
+    unit = rng.uniform(-2.0, 2.0, (500, 4)).astype(np.float32)
+    unit[:, 3] = rng.integers(0, 151, 500) / np.float32(150)
+    livox = unit.copy()
+    livox[:, 3] = np.round(unit[:, 3] * 150)
+    want = P.Predictor(config, params, "unit")(unit)
+    predictor = P.Predictor(config, params)
+    got = predictor(livox)
+    assert predictor.last_intensity_factor == pytest.approx(1 / 150)
+    np.testing.assert_allclose(got[0], want[0], atol=1e-6)  # the points the model saw
+    np.testing.assert_allclose(got[2].logits, want[2].logits, rtol=1e-4, atol=1e-4)
+    kitti.write_points(tmp_path / "livox.bin", livox)
+    args = ["predict", str(model_file), str(tmp_path / "livox.bin"), "--out", str(tmp_path / "o")]
+    assert cli_main([*args, "--no-pictures", "--intensity", "livox"]) == 0
+    assert "intensity scaled by 0.00666667" in capsys.readouterr().out
+    assert cli_main([*args, "--intensity", "lux"]) == 2
+    assert "intensity units 'lux'" in capsys.readouterr().err

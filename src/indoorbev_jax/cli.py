@@ -24,6 +24,24 @@ def _add_preset(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _intensity_units(text: str) -> str | float:
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def _add_intensity(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--intensity",
+        type=_intensity_units,
+        default="auto",
+        help="units of the clouds' intensity: auto (values above 1 are Livox reflectivity), "
+        "unit ([0, 1], the simulator's), livox (0-255, 150 = 100 %% Lambertian), percent, "
+        "or a factor; the model reads it in [0, 1]",
+    )
+
+
 def dataset_check(args: argparse.Namespace) -> int:
     """Validates every frame of a dataset folder; prints statistics and the first problems."""
     from indoorbev_jax.data import kitti
@@ -108,6 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     pred.add_argument("--topic", default=None, help="PointCloud2 topic of a bag")
     pred.add_argument("--bag-out", default=None, help="also write a bag with the predictions")
     pred.add_argument("--no-pictures", action="store_true")
+    _add_intensity(pred)
     pred.set_defaults(func=run_predict)
 
     ros2 = commands.add_parser("ros2", help="live ROS 2 nodes (pip install -e .[ros])")
@@ -132,6 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="process the finite points of clouds with NaN/Inf points (default: empty output)",
     )
     det.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0: never)")
+    _add_intensity(det)
     det.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
                      help="the rest goes to rclpy (remappings, log levels)")  # fmt: skip
     det.set_defaults(func=run_ros2_detect)
@@ -155,6 +175,7 @@ def run_ros2_detect(args: argparse.Namespace) -> int:
             max_frames=args.max_frames,
             ros_args=args.ros_args,
             skip_nonfinite=args.skip_nonfinite,
+            intensity=args.intensity,
         )
     except (RosUnavailable, OSError, ValueError) as e:
         print(f"indoorbev ros2 detect: error: {e}", file=sys.stderr)
@@ -173,6 +194,7 @@ def run_predict(args: argparse.Namespace) -> int:
             topic=args.topic,
             bag_out=args.bag_out,
             pictures=not args.no_pictures,
+            intensity=args.intensity,
         )
     except (OSError, ValueError) as e:  # bad model file, input or bag (rosbag.BagError)
         print(f"indoorbev predict: error: {e}", file=sys.stderr)

@@ -35,6 +35,46 @@ from indoorbev_jax.models import IndoorBEV
 
 MODEL_FORMAT = "indoorbev_jax-model-v1"
 
+# The model reads intensity as the simulator makes it: reflectivity x cos(incidence), in
+# [0, 1]. Drivers report other units; each factor maps one onto that (then clipped to [0, 1]).
+INTENSITY_UNITS = {
+    "unit": 1.0,  # already reflectivity in [0, 1]: the simulator and its exports
+    "livox": 1 / 150,  # Livox: 0-150 = 0-100 % Lambertian reflectivity, 151-255 retro-reflectors
+    "percent": 1 / 100,  # reflectivity in % (e.g. RoboSense: 0-100 diffuse, 101-255 retro)
+}
+
+
+def intensity_factor(units: str | float, points: np.ndarray) -> float:
+    """The factor that maps ``points``' intensity (column 3) in ``units`` onto [0, 1].
+
+    Args:
+      units: a name of ``INTENSITY_UNITS``, a number (the factor itself), or "auto": "unit"
+        when every finite intensity is at most 1, else "livox" (the MID-360's driver).
+      points: float [N, 4].
+    """
+    if isinstance(units, str) and units != "auto":
+        if units not in INTENSITY_UNITS:
+            raise ValueError(
+                f"intensity units {units!r}: expected 'auto', one of {sorted(INTENSITY_UNITS)} "
+                f"or a number"
+            )
+        return INTENSITY_UNITS[units]
+    if units == "auto":
+        intensity = np.asarray(points)[:, 3]
+        high = np.isfinite(intensity) & (intensity > 1.0)
+        return INTENSITY_UNITS["livox"] if high.any() else 1.0
+    factor = float(units)
+    if not (np.isfinite(factor) and factor >= 0):
+        raise ValueError(f"intensity factor {units!r}: expected a finite number >= 0")
+    return factor
+
+
+def normalize_intensity(points: np.ndarray, factor: float) -> np.ndarray:
+    """float32 [N, 4], intensity times ``factor`` clipped to [0, 1] (the simulator's range)."""
+    points = np.array(points, np.float32).reshape(-1, 4)
+    points[:, 3] = np.clip(points[:, 3] * np.float32(factor), 0.0, 1.0)
+    return points
+
 
 def export_model(params: Any, config: Config, path: str | os.PathLike) -> Path:
     """Writes config + parameters as one msgpack file (atomically)."""
@@ -94,11 +134,19 @@ def iter_frames(path: str | os.PathLike, topic: str | None = None) -> Iterator:
 
 
 class Predictor:
-    """A jitted model + panoptic inference for one frame at a time (static shapes)."""
+    """A jitted model + panoptic inference for one frame at a time (static shapes).
 
-    def __init__(self, config: Config, params: Any):
+    ``intensity`` gives the units of the clouds' intensity (``intensity_factor``); each
+    cloud's intensity is mapped onto the simulator's [0, 1] before the model sees it.
+    """
+
+    def __init__(self, config: Config, params: Any, intensity: str | float = "auto"):
         self.config = config
         self.params = params
+        intensity_factor(intensity, np.zeros((0, 4), np.float32))  # bad units fail here
+        self.intensity = intensity
+        self.last_counts: dict[str, int] = {}
+        self.last_intensity_factor = 1.0
         model = IndoorBEV(config)
 
         def run(params, points, valid):
@@ -117,9 +165,15 @@ class Predictor:
 
     def __call__(self, points: np.ndarray):
         """(points padded [N, 4], valid, final-layer predictions, panoptic output, BEV
-        features [H, W, C]) of one raw cloud, all numpy, batch axis removed."""
+        features [H, W, C]) of one raw cloud, all numpy, batch axis removed.
+
+        ``last_counts`` then holds ``pad_points``' counts of the cloud's non-finite,
+        out-of-workspace and dropped points (past ``data.max_points``, thinned evenly), and
+        ``last_intensity_factor`` the factor its intensity was scaled by."""
         cfg = self.config
-        padded, valid, _ = pad_points(points, cfg.grid, cfg.data.max_points)
+        self.last_intensity_factor = intensity_factor(self.intensity, points)
+        points = normalize_intensity(points, self.last_intensity_factor)
+        padded, valid, self.last_counts = pad_points(points, cfg.grid, cfg.data.max_points)
         final, output, bev = self._run(self.params, padded[None], valid[None])
         final, output, bev = jax.device_get((final, output, bev))
         one = lambda tree: jax.tree.map(lambda x: np.asarray(x)[0], tree)  # noqa: E731
@@ -172,18 +226,25 @@ def predict(
     bag_out: str | os.PathLike | None = None,
     pictures: bool = True,
     verbose: bool = True,
+    intensity: str | float = "auto",
 ) -> dict:
     """Runs the model over INPUT and writes labels, masks, pictures (and a bag).
 
+    ``intensity``: the units of INPUT's intensity (``intensity_factor``; "auto" reads values
+    above 1 as Livox reflectivity 0-255).
+
     Returns:
-      ``{"frames", "latency_ms": {"median", "p90", "max"}, "objects"}``; latency is the
-      jitted model + inference time per frame, the first (compiling) frame excluded.
+      ``{"frames", "latency_ms": {"median", "p90", "max"}, "objects", "thinned_frames"}``;
+      latency is the jitted model + inference time per frame, the first (compiling) frame
+      excluded; ``thinned_frames`` counts the frames with more valid points than
+      ``data.max_points`` (each kept ``max_points``, evenly spread).
     """
     config, params = load_model(model_path)
-    predictor = Predictor(config, jax.tree.map(jnp.asarray, params))
+    predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity)
     out = Path(out)
     names = config.data.class_names
-    latencies, objects, frames = [], 0, 0
+    latencies, objects, frames, thinned = [], 0, 0, 0
+    factors_said = set()
     bag_frames = []
     for frame_id, points, stamp, frame_name in iter_frames(input_path, topic):
         start = time.perf_counter()
@@ -202,13 +263,28 @@ def predict(
             pic.save(out / "pictures" / f"{frame_id}.png")
         if bag_out is not None:
             bag_frames.append((stamp, frame_name, points, labels))
+        dropped = predictor.last_counts["dropped_points"]
+        thinned += int(dropped > 0)
+        factor = predictor.last_intensity_factor
+        if verbose and factor != 1.0 and factor not in factors_said:
+            factors_said.add(factor)
+            print(
+                f"{frame_id}: intensity scaled by {factor:.6g} and clipped to [0, 1], the "
+                f"simulator's reflectivity range ({intensity!r} units; --intensity sets them)"
+            )
         if verbose:
-            print(f"{frame_id}: {len(labels)} objects, {ms:.1f} ms")
+            note = (
+                f"; {dropped} of {dropped + config.data.max_points} valid points left out "
+                f"(data.max_points={config.data.max_points}, the rest spread over the scan)"
+                if dropped
+                else ""
+            )
+            print(f"{frame_id}: {len(labels)} objects, {ms:.1f} ms{note}")
     if frames == 0:
         raise ValueError(f"{input_path}: no frames found")
     if bag_out is not None:
         write_prediction_bag(bag_out, bag_frames, names)
-    summary = {"frames": frames, "objects": objects}
+    summary = {"frames": frames, "objects": objects, "thinned_frames": thinned}
     if latencies:
         lat = np.asarray(latencies)
         summary["latency_ms"] = {
@@ -220,6 +296,11 @@ def predict(
         lat = summary.get("latency_ms")
         tail = f", median {lat['median']:.1f} ms/frame (first frame compiles)" if lat else ""
         print(f"{frames} frames, {objects} objects written to {out}{tail}")
+        if thinned:
+            print(
+                f"{thinned} frames had more valid points than data.max_points="
+                f"{config.data.max_points}: each kept that many, evenly spread"
+            )
     return summary
 
 

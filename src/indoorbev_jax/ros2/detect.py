@@ -74,15 +74,16 @@ class Detector:
     single finite point inside the grid gives a warning and empty outputs (no object, no
     marker, an all-unknown grid). So does a cloud holding non-finite points, unless
     ``skip_nonfinite`` (organized clouds that mark missing returns with NaN): then those
-    points are dropped with a warning and the rest is processed.
+    points are dropped with a warning and the rest is processed. ``intensity``: the units of
+    the clouds' intensity (``predict.intensity_factor``).
     """
 
-    def __init__(self, config, params, ts=None, skip_nonfinite: bool = False):
+    def __init__(self, config, params, ts=None, skip_nonfinite: bool = False, intensity="auto"):
         self.config = config
         self.skip_nonfinite = skip_nonfinite
         self.ts = ts if ts is not None else default_typestore()
         self.names = config.data.class_names
-        self.predictor = Predictor(config, jax.tree.map(jnp.asarray, params))
+        self.predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity)
 
     def warmup(self) -> float:
         """Runs one dummy cloud through every step (the model compiles, ``rosbags`` builds
@@ -109,8 +110,8 @@ class Detector:
             notes.append(f"{counts['nonfinite_points']} of {len(points)} points are not finite")
         if counts["dropped_points"]:
             notes.append(
-                f"{counts['dropped_points']} points beyond data.max_points="
-                f"{self.config.data.max_points} dropped"
+                f"{counts['dropped_points']} valid points beyond data.max_points="
+                f"{self.config.data.max_points} left out, the rest spread over the cloud"
             )
         if counts["nonfinite_points"] and not self.skip_nonfinite:
             return self._empty(stamp, frame, f"{source}: {notes[0]}; cloud skipped "
@@ -186,6 +187,7 @@ def run_detect_node(
     max_frames: int = 0,
     ros_args: list[str] | None = None,
     skip_nonfinite: bool = False,
+    intensity: str | float = "auto",
 ) -> dict:
     """Runs the detect node until Ctrl-C / SIGTERM (or ``max_frames`` processed frames).
 
@@ -202,6 +204,7 @@ def run_detect_node(
       ros_args: arguments after ``--ros-args`` (remappings, log levels), passed to rclpy.
       skip_nonfinite: process the finite points of clouds holding NaN/Inf points
         (default: warn and publish empty outputs for such a cloud).
+      intensity: units of the clouds' intensity (``predict.intensity_factor``).
 
     Returns:
       the statistics of ``_Stats.summary`` (counts and latency percentiles).
@@ -214,7 +217,7 @@ def run_detect_node(
 
         ensure_new(record)
     config, params = load_model(checkpoint)
-    detector = Detector(config, params, skip_nonfinite=skip_nonfinite)
+    detector = Detector(config, params, skip_nonfinite=skip_nonfinite, intensity=intensity)
     compile_s = detector.warmup()
     context, node = runtime.start_node("indoorbev_detect", ros_args)
     log = node.get_logger()
