@@ -261,7 +261,8 @@ def main(argv=None):
             f"{label}: jax {jax.__version__} {jax.devices()[0].platform} params {n / 1e6:.3f} M, "
             f"XLA options {used or 'none'}, "
             f"compile {compile_s:.1f} s, XLA memory {mem / 2**30:.2f} GiB, "
-            f"freed memory retained {'yes' if host_memory.retained else 'no'} (host_memory)",
+            f"freed memory retained {'yes' if host_memory.retained else 'no'} (host_memory), "
+            f"GLIBC_TUNABLES {os.environ.get('GLIBC_TUNABLES') or 'unset'}",
             flush=True,
         )
         variants = []  # (settings shown in the name, config, XLA options)
