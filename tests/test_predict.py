@@ -12,7 +12,7 @@ from indoorbev_jax import predict as P
 from indoorbev_jax.cli import main as cli_main
 from indoorbev_jax.config import Config, InferenceConfig
 from indoorbev_jax.data import kitti
-from indoorbev_jax.rosbag import BagError, pointcloud2_to_points, typestore
+from indoorbev_jax.rosbag import LIVOX_CUSTOM, BagError, pointcloud2_to_points, typestore
 from indoorbev_jax.train import init_state
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -183,3 +183,70 @@ def test_livox_cloud_gives_the_unit_clouds_prediction(model_file, tmp_path, caps
     assert "intensity scaled by 0.00666667" in capsys.readouterr().out
     assert cli_main([*args, "--intensity", "lux"]) == 2
     assert "intensity units 'lux'" in capsys.readouterr().err
+
+
+def _livox_bag(path, clouds, topic="/livox/lidar"):
+    """A rosbag2 folder of livox_ros_driver2/CustomMsg, one message per [N, 4] cloud."""
+    from rosbags.rosbag2 import Writer
+
+    from indoorbev_jax.rosbag import header
+
+    ts = typestore()
+    t = ts.types
+    with Writer(path, version=8) as writer:
+        conn = writer.add_connection(topic, LIVOX_CUSTOM, typestore=ts)
+        for k, cloud in enumerate(clouds):
+            stamp = (k + 1) * 10**8
+            points = [
+                t["livox_ros_driver2/msg/CustomPoint"](
+                    offset_time=i, x=x, y=y, z=z, reflectivity=int(r), tag=0, line=i % 4
+                )
+                for i, (x, y, z, r) in enumerate(cloud)
+            ]
+            msg = t[LIVOX_CUSTOM](
+                header=header(ts, stamp, "livox_frame"), timebase=stamp, point_num=len(points),
+                lidar_id=192, rsvd=np.zeros(3, np.uint8), points=points,
+            )  # fmt: skip
+            writer.write(conn, stamp, ts.serialize_cdr(msg, LIVOX_CUSTOM))
+
+
+def test_livox_custom_msg_bag_reads_and_predicts_as_its_points(model_file, tmp_path):
+    from indoorbev_jax.rosbag import read_clouds
+
+    rng = np.random.default_rng(3)
+    clouds = []
+    for n in (300, 450):
+        cloud = rng.uniform(-2.0, 2.0, (n, 4)).astype(np.float32)
+        cloud[:, 3] = rng.integers(0, 256, n)  # Livox reflectivity
+        clouds.append(cloud)
+    _livox_bag(tmp_path / "livox_bag", clouds)
+    frames = list(read_clouds(tmp_path / "livox_bag"))
+    assert [(stamp, frame) for stamp, frame, _ in frames] == [
+        (10**8, "livox_frame"),
+        (2 * 10**8, "livox_frame"),
+    ]
+    for (_, _, got), cloud in zip(frames, clouds, strict=True):
+        np.testing.assert_array_equal(got, cloud)
+    # The bag and the same points as .bin files give the same labels (intensity: auto).
+    kitti_root = tmp_path / "kitti"
+    for k, cloud in enumerate(clouds):
+        kitti.write_points(kitti_root / "velodyne" / f"{k:06d}.bin", cloud)
+    P.predict(model_file, tmp_path / "livox_bag", tmp_path / "a", pictures=False, verbose=False)
+    P.predict(model_file, kitti_root, tmp_path / "b", pictures=False, verbose=False)
+    for fid in ("000000", "000001"):
+        a = (tmp_path / "a" / "label_2" / f"{fid}.txt").read_text()
+        assert a == (tmp_path / "b" / "label_2" / f"{fid}.txt").read_text()
+    # A message whose point count disagrees with its points is named.
+    from indoorbev_jax.rosbag import livox_custom_to_points
+
+    msg = typestore().deserialize_cdr(_first_raw(tmp_path / "livox_bag"), LIVOX_CUSTOM)
+    msg.point_num = 7
+    with pytest.raises(BagError, match=r"bag@1: point_num 7 but 300 points"):
+        livox_custom_to_points(msg, "bag@1")
+
+
+def _first_raw(bag):
+    from rosbags.rosbag2 import Reader
+
+    with Reader(bag) as reader:
+        return next(iter(reader.messages()))[2]

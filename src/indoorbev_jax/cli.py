@@ -123,7 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
     pred.add_argument("model", help="run directory or exported model file (.msgpack)")
     pred.add_argument("input", help=".bin file, KITTI-style folder or ROS 2 bag folder")
     pred.add_argument("--out", required=True, help="output folder (label_2, mask_2, pictures)")
-    pred.add_argument("--topic", default=None, help="PointCloud2 topic of a bag")
+    pred.add_argument(
+        "--topic", default=None, help="cloud topic of a bag (PointCloud2 or Livox CustomMsg)"
+    )
     pred.add_argument("--bag-out", default=None, help="also write a bag with the predictions")
     pred.add_argument("--no-pictures", action="store_true")
     _add_intensity(pred)

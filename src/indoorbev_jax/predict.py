@@ -4,7 +4,7 @@ MODEL is a run directory (``config.json`` + orbax checkpoints; the best checkpoi
 used) or a model file written by ``export_model`` (one msgpack file holding the config and
 the parameters, what ``make demo`` ships). INPUT is a ``.bin`` file, a KITTI-style folder
 (``velodyne/``) or a ROS 2 bag folder holding sensor_msgs/PointCloud2 of any field layout
-with x, y, z and optional intensity.
+with x, y, z and optional intensity, or Livox's livox_ros_driver2/CustomMsg.
 
 Per frame, DIR receives ``label_2/<id>.txt`` (KITTI lines with a 16th score field, one per
 predicted segment), ``mask_2/<id>.png`` (16-bit ids, id k + 1 = line k) and

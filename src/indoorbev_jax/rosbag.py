@@ -1,8 +1,10 @@
 """ROS 2 bags without a ROS install, through the pure-Python ``rosbags`` library.
 
 Reads sensor_msgs/PointCloud2 of any field layout holding x, y, z (and optionally
-intensity), and builds the PointCloud2 / MarkerArray messages the simulator export and
-the predict command write.
+intensity) and Livox's livox_ros_driver2/CustomMsg (what the MID-360's ROS 2 driver
+publishes with ``xfer_format`` 1, and what lidar-inertial odometry recipes record), and
+builds the PointCloud2 / MarkerArray messages the simulator export and the predict command
+write.
 """
 
 from __future__ import annotations
@@ -19,6 +21,27 @@ from indoorbev_jax.data import kitti
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+LIVOX_CUSTOM = "livox_ros_driver2/msg/CustomMsg"
+
+# livox_ros_driver2's msg/CustomPoint.msg and msg/CustomMsg.msg, so that its bags read
+# without the package; reflectivity is Livox's 0-255 (150 = 100 % Lambertian).
+_LIVOX_POINT = """uint32 offset_time
+float32 x
+float32 y
+float32 z
+uint8 reflectivity
+uint8 tag
+uint8 line
+"""
+_LIVOX_CLOUD = """std_msgs/Header header
+uint64 timebase
+uint32 point_num
+uint8 lidar_id
+uint8[3] rsvd
+livox_ros_driver2/CustomPoint[] points
+"""
+# The message types read as lidar frames.
+CLOUD_TYPES = (POINTCLOUD2, LIVOX_CUSTOM)
 
 # sensor_msgs/PointField datatypes -> numpy scalar types.
 _FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -29,9 +52,14 @@ class BagError(ValueError):
 
 
 def typestore():
-    from rosbags.typesys import Stores, get_typestore
+    """ROS 2 Humble's message types, plus Livox's CustomMsg."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-    return get_typestore(Stores.ROS2_HUMBLE)
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    types = get_types_from_msg(_LIVOX_POINT, "livox_ros_driver2/msg/CustomPoint")
+    types |= get_types_from_msg(_LIVOX_CLOUD, LIVOX_CUSTOM)
+    ts.register(types)
+    return ts
 
 
 def header(ts, stamp_ns: int, frame: str = "lidar"):
@@ -181,36 +209,56 @@ def pointcloud2_to_points(msg, source: str = "PointCloud2") -> np.ndarray:
     return np.stack([column("x"), column("y"), column("z"), intensity], axis=1)
 
 
+def livox_custom_to_points(msg, source: str = "CustomMsg") -> np.ndarray:
+    """float32 [N, 4] (x, y, z, reflectivity 0-255) from a livox_ros_driver2/CustomMsg."""
+    points = msg.points
+    if int(msg.point_num) != len(points):
+        raise BagError(f"{source}: point_num {msg.point_num} but {len(points)} points")
+    out = np.empty((len(points), 4), np.float32)
+    for k, field in enumerate(("x", "y", "z", "reflectivity")):
+        out[:, k] = [getattr(p, field) for p in points]
+    return out
+
+
 def read_clouds(
     bag: str | os.PathLike, topic: str | None = None
 ) -> Iterator[tuple[int, str, np.ndarray]]:
-    """Yields (timestamp ns, frame id, points [N, 4]) for each PointCloud2 of a bag.
+    """Yields (timestamp ns, frame id, points [N, 4]) for each cloud message of a bag.
 
     Args:
-      bag: a rosbag2 folder (sqlite3 or MCAP storage).
-      topic: topic name; None picks the only PointCloud2 topic (an error when several).
+      bag: a rosbag2 folder (sqlite3 or MCAP storage) holding sensor_msgs/PointCloud2 or
+        livox_ros_driver2/CustomMsg (intensity = Livox reflectivity 0-255).
+      topic: topic name; None picks the only such topic (an error when several).
     """
     from rosbags.rosbag2 import Reader
 
     bag = Path(bag)
     ts = typestore()
+    kinds = " or ".join(t.rsplit("/", 1)[-1] for t in CLOUD_TYPES)
     with Reader(bag) as reader:
-        clouds = [c for c in reader.connections if c.msgtype == POINTCLOUD2]
+        clouds = [c for c in reader.connections if c.msgtype in CLOUD_TYPES]
         if topic is not None:
             chosen = [c for c in reader.connections if c.topic == topic]
             if not chosen:
                 have = sorted({c.topic for c in reader.connections})
                 raise BagError(f"{bag}: no topic '{topic}'; topics: {have}")
-            if chosen[0].msgtype != POINTCLOUD2:
-                raise BagError(f"{bag}: topic '{topic}' is {chosen[0].msgtype}, not {POINTCLOUD2}")
+            if chosen[0].msgtype not in CLOUD_TYPES:
+                raise BagError(
+                    f"{bag}: topic '{topic}' is {chosen[0].msgtype}, not one of {CLOUD_TYPES}"
+                )
         elif len({c.topic for c in clouds}) != 1:
             names = sorted({c.topic for c in clouds})
-            raise BagError(f"{bag}: {len(names)} PointCloud2 topics {names}; pick one with --topic")
+            raise BagError(f"{bag}: {len(names)} {kinds} topics {names}; pick one with --topic")
         else:
             chosen = clouds
         for conn, stamp, raw in reader.messages(connections=chosen):
             msg = ts.deserialize_cdr(raw, conn.msgtype)
-            yield stamp, msg.header.frame_id, pointcloud2_to_points(msg, f"{bag}@{stamp}")
+            source = f"{bag}@{stamp}"
+            if conn.msgtype == LIVOX_CUSTOM:
+                points = livox_custom_to_points(msg, source)
+            else:
+                points = pointcloud2_to_points(msg, source)
+            yield stamp, msg.header.frame_id, points
 
 
 def write_bag(
