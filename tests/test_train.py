@@ -15,6 +15,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from indoorbev_jax import train as T
@@ -88,6 +89,49 @@ def test_vmapped_sweep_equals_separate_runs(batch, step_fn):
             states.params,
             state.params,
         )
+
+
+def test_params_ema_is_the_average_of_the_stepped_params(tmp_path):
+    decay = 0.9
+    cfg = dataclasses.replace(CFG, train=dataclasses.replace(CFG.train, ema_decay=decay))
+    optimizer = T.make_optimizer(cfg)
+    params = {"w": jnp.array([1.0, -2.0, 3.0]), "b": jnp.array(0.5)}
+    state = T.TrainState(
+        step=jnp.int32(0), params=params, opt_state=optimizer.init(params), skipped=jnp.int32(0)
+    )
+    ema = jax.tree.map(np.asarray, params)
+    for k, lr in enumerate((0.1, 0.05, 0.2, 0.1)):
+        grads = jax.tree.map(lambda p, k=k: 2 * p + k, state.params)  # d/dp (p^2 + k p)
+        opt_state = T._set_learning_rate(state.opt_state, jnp.float32(lr))
+        updates, opt_state = optimizer.update(grads, opt_state, state.params)
+        new_params = optax.apply_updates(state.params, updates)
+        state = state.replace(params=new_params, opt_state=opt_state)
+        assert float(opt_state[1].hyperparams["learning_rate"]) == pytest.approx(lr)
+        ema = jax.tree.map(lambda e, p: decay * e + (1 - decay) * np.asarray(p), ema, state.params)
+    got = T.eval_params(state)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), got, ema)
+    assert not np.allclose(got["w"], state.params["w"])
+    # Without the average, evaluation reads the trained parameters.
+    plain = state.replace(opt_state=T.make_optimizer(CFG).init(params))
+    assert T.eval_params(plain) is plain.params
+
+
+def test_run_with_ema_checkpoints_and_exports_the_average(tmp_path):
+    cfg = dataclasses.replace(CFG, train=dataclasses.replace(CFG.train, ema_decay=0.99))
+    state = T.init_state(cfg, jax.random.key(0))
+    ema = T.eval_params(state)
+    jax.tree.map(np.testing.assert_array_equal, ema, state.params)  # starts at the params
+    shifted = jax.tree.map(lambda x: x + 1.0, ema)
+    opt_state = tuple(
+        s._replace(ema=shifted) if isinstance(s, T.ParamsEmaState) else s for s in state.opt_state
+    )
+    (tmp_path / "config.json").write_text(cfg.to_json())
+    ckpt = T.Checkpoints(tmp_path, cfg.train.keep_checkpoints)
+    ckpt.save(state.replace(step=jnp.int32(5), opt_state=opt_state))
+    ckpt.close()
+    config, params = T.load_params(tmp_path, which="latest")
+    assert config.train.ema_decay == 0.99
+    jax.tree.map(np.testing.assert_array_equal, params, shifted)
 
 
 def test_corrupt_latest_checkpoint_falls_back(tmp_path, caplog):

@@ -380,6 +380,11 @@ class TrainConfig:
     warmup_steps: int = 500
     total_steps: int = 50_000
     grad_clip_norm: float = 1.0  # 0 disables clipping
+    # Exponential moving average of the parameters, kept in the optimizer state (0: off).
+    # Evaluation, the best checkpoint's score and exported models use the average; it starts
+    # at the initial (or loaded) parameters, so 1 / (1 - ema_decay) should be well under the
+    # run's steps.
+    ema_decay: float = 0.0
     bfloat16: bool = False
     augment: bool = True  # run the augmentation chain (config.augment) in the train step
     eval_batches: int = 8  # validation batches per evaluation
@@ -404,6 +409,8 @@ class TrainConfig:
             v = getattr(self, name)
             if v < 0 or not math.isfinite(v):
                 _fail(f"train.{name}", f"must be finite and >= 0, got {v!r}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            _fail("train.ema_decay", f"must lie in [0, 1) (0: off), got {self.ema_decay!r}")
         if not 0 <= self.warmup_steps <= self.total_steps:
             _fail("train.warmup_steps", f"must lie in [0, total_steps], got {self.warmup_steps}")
 

@@ -26,7 +26,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -95,20 +95,53 @@ def lr_factor(step: jax.Array, warmup: int, total: int) -> jax.Array:
     return jnp.where(step < warmup, warm, cosine)
 
 
+class ParamsEmaState(NamedTuple):
+    """``params_ema``'s state: the average of the parameters after each update."""
+
+    ema: Any
+
+
+def params_ema(decay: float) -> optax.GradientTransformation:
+    """Keeps ``ema <- decay * ema + (1 - decay) * (params + updates)`` in its state, the
+    parameters after each step, and passes the updates on unchanged (last in a chain)."""
+
+    def init(params):
+        return ParamsEmaState(ema=jax.tree.map(jnp.asarray, params))
+
+    def update(updates, state, params=None):
+        if params is None:
+            raise ValueError("params_ema needs the parameters: optimizer.update(g, s, params)")
+        new = optax.apply_updates(params, updates)
+        ema = jax.tree.map(lambda e, p: decay * e + (1.0 - decay) * p, state.ema, new)
+        return updates, ParamsEmaState(ema=ema)
+
+    return optax.GradientTransformation(init, update)
+
+
 def make_optimizer(config: Config) -> optax.GradientTransformation:
-    """Gradient clipping + AdamW whose learning rate the step sets (``inject_hyperparams``)."""
+    """Gradient clipping + AdamW whose learning rate the step sets (``inject_hyperparams``),
+    + the parameters' moving average when ``train.ema_decay`` > 0."""
     t = config.train
     clip = optax.clip_by_global_norm(t.grad_clip_norm) if t.grad_clip_norm else optax.identity()
     adamw = optax.inject_hyperparams(optax.adamw)(
         learning_rate=t.learning_rate, weight_decay=t.weight_decay
     )
+    if t.ema_decay:
+        return optax.chain(clip, adamw, params_ema(t.ema_decay))
     return optax.chain(clip, adamw)
 
 
 def _set_learning_rate(opt_state, lr: jax.Array):
-    clip_state, adam_state = opt_state
+    clip_state, adam_state, *rest = opt_state
     hyper = dict(adam_state.hyperparams, learning_rate=jnp.asarray(lr, jnp.float32))
-    return (clip_state, adam_state._replace(hyperparams=hyper))
+    return (clip_state, adam_state._replace(hyperparams=hyper), *rest)
+
+
+def eval_params(state: TrainState) -> Any:
+    """The parameters to evaluate and export: their moving average when the run keeps one
+    (``train.ema_decay``), else the trained ones."""
+    ema = [s for s in state.opt_state if isinstance(s, ParamsEmaState)]
+    return ema[0].ema if ema else state.params
 
 
 def init_state(config: Config, key: jax.Array) -> TrainState:
@@ -659,7 +692,7 @@ def train_and_evaluate(
             if done % t.checkpoint_every == 0 or done == t.total_steps:
                 checkpoints.save(state)
             if done % t.eval_every == 0 or done == t.total_steps:
-                results = evaluate(config, state.params, val_batches, predict_fn)
+                results = evaluate(config, eval_params(state), val_batches, predict_fn)
                 scalars = {k: v for k, v in results.items() if isinstance(v, int | float)}
                 scalars.update({f"ap{thr}": v for thr, v in results["ap"].items()})
                 metrics_log.write(done, "eval", scalars)
@@ -688,4 +721,4 @@ def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config
     checkpoints.close()
     if state is None:
         raise FileNotFoundError(f"{workdir}: no checkpoint found")
-    return config, state.params
+    return config, eval_params(state)
