@@ -121,6 +121,11 @@ def test_run_with_ema_checkpoints_and_exports_the_average(tmp_path):
     state = T.init_state(cfg, jax.random.key(0))
     ema = T.eval_params(state)
     jax.tree.map(np.testing.assert_array_equal, ema, state.params)  # starts at the params
+    # ... in buffers of its own, also when set up eagerly (with_pretrained): the train step
+    # donates the state, and a buffer held twice cannot be donated.
+    for s in (state, state.replace(opt_state=T.make_optimizer(cfg).init(state.params))):
+        pointers = [x.unsafe_buffer_pointer() for x in jax.tree.leaves(s)]
+        assert len(set(pointers)) == len(pointers)
     shifted = jax.tree.map(lambda x: x + 1.0, ema)
     opt_state = tuple(
         s._replace(ema=shifted) if isinstance(s, T.ParamsEmaState) else s for s in state.opt_state

@@ -106,7 +106,8 @@ def params_ema(decay: float) -> optax.GradientTransformation:
     parameters after each step, and passes the updates on unchanged (last in a chain)."""
 
     def init(params):
-        return ParamsEmaState(ema=jax.tree.map(jnp.asarray, params))
+        # A copy: the train step donates its state, and a buffer held twice cannot be.
+        return ParamsEmaState(ema=jax.tree.map(jnp.copy, params))
 
     def update(updates, state, params=None):
         if params is None:
