@@ -54,10 +54,10 @@ def pad_points(
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """Pads a raw cloud to ``[max_points, 4]`` with a validity mask.
 
-    Non-finite and out-of-workspace points are left out (counted). Of more than ``max_points`` valid
-    points, ``max_points`` evenly spaced in the input order are kept (deterministic; the order
-    is kept too): lidar drivers emit points by time or azimuth, so keeping the first ones
-    would cut whole sectors out of the scan.
+    Non-finite and out-of-workspace points are left out (counted). Of more than
+    ``max_points`` valid points, ``max_points`` evenly spaced in the input order are kept
+    (deterministic; the order is kept too): lidar drivers emit points by time or azimuth,
+    so keeping the first ones would cut whole sectors out of the scan.
 
     Returns:
       points float32 [max_points, 4] (invalid rows zeroed), valid bool [max_points], and
