@@ -34,6 +34,7 @@ def test_preset_grids():
         (lambda: BackboneConfig(depths=(1, 1)), "backbone.depths"),
         (lambda: HeadConfig(num_heads=5), "head.num_heads"),
         (lambda: TrainConfig(warmup_steps=10, total_steps=5), "train.warmup_steps"),
+        (lambda: TrainConfig(ema_decay=1.0), "train.ema_decay"),
         (
             lambda: dataclasses.replace(Config.tiny(), head=HeadConfig(num_queries=4)),
             "data.max_objects",

@@ -250,3 +250,11 @@ def _first_raw(bag):
 
     with Reader(bag) as reader:
         return next(iter(reader.messages()))[2]
+
+
+def test_nan_intensity_stays_invalid_after_scaling():
+    pts = np.array([[1.0, 0.0, 0.0, np.nan], [1.0, 1.0, 0.0, 200.0]], np.float32)
+    scaled = P.normalize_intensity(pts, P.intensity_factor("auto", pts))
+    assert np.isnan(scaled[0, 3]) and scaled[1, 3] == 1.0  # 200 > 150: a retro-reflector
+    _, valid, counts = P.pad_points(scaled, CFG.grid, CFG.data.max_points)
+    assert counts["nonfinite_points"] == 1 and valid.sum() == 1
