@@ -52,17 +52,17 @@ def intensity_factor(units: str | float, points: np.ndarray) -> float:
         when every finite intensity is at most 1, else "livox" (the MID-360's driver).
       points: float [N, 4].
     """
-    if isinstance(units, str) and units != "auto":
+    if units == "auto":
+        intensity = np.asarray(points)[:, 3]
+        high = np.isfinite(intensity) & (intensity > 1.0)
+        return INTENSITY_UNITS["livox"] if high.any() else 1.0
+    if isinstance(units, str):
         if units not in INTENSITY_UNITS:
             raise ValueError(
                 f"intensity units {units!r}: expected 'auto', one of {sorted(INTENSITY_UNITS)} "
                 f"or a number"
             )
         return INTENSITY_UNITS[units]
-    if units == "auto":
-        intensity = np.asarray(points)[:, 3]
-        high = np.isfinite(intensity) & (intensity > 1.0)
-        return INTENSITY_UNITS["livox"] if high.any() else 1.0
     factor = float(units)
     if not (np.isfinite(factor) and factor >= 0):
         raise ValueError(f"intensity factor {units!r}: expected a finite number >= 0")
@@ -163,21 +163,30 @@ class Predictor:
 
         self._run = jax.jit(run)
 
-    def __call__(self, points: np.ndarray):
-        """(points padded [N, 4], valid, final-layer predictions, panoptic output, BEV
-        features [H, W, C]) of one raw cloud, all numpy, batch axis removed.
-
-        ``last_counts`` then holds ``pad_points``' counts of the cloud's non-finite,
-        out-of-workspace and dropped points (past ``data.max_points``, thinned evenly), and
-        ``last_intensity_factor`` the factor its intensity was scaled by."""
+    def prepare(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+        """A raw cloud as the model takes it: (points padded [N, 4] with intensity in [0, 1],
+        valid [N], ``pad_points``' counts of non-finite, out-of-workspace and dropped points
+        (past ``data.max_points``, thinned evenly)). Also kept as ``last_counts``, and the
+        intensity's factor as ``last_intensity_factor``."""
         cfg = self.config
         self.last_intensity_factor = intensity_factor(self.intensity, points)
         points = normalize_intensity(points, self.last_intensity_factor)
         padded, valid, self.last_counts = pad_points(points, cfg.grid, cfg.data.max_points)
+        return padded, valid, self.last_counts
+
+    def __call__(self, points: np.ndarray):
+        """(points padded [N, 4], valid, final-layer predictions, panoptic output, BEV
+        features [H, W, C]) of one raw cloud (``prepare``), all numpy, batch axis removed."""
+        padded, valid, _ = self.prepare(points)
+        return (padded, valid, *self.infer(padded, valid))
+
+    def infer(self, padded: np.ndarray, valid: np.ndarray):
+        """(final-layer predictions, panoptic output, BEV features [H, W, C]) of one
+        ``prepare``d cloud, all numpy, batch axis removed."""
         final, output, bev = self._run(self.params, padded[None], valid[None])
         final, output, bev = jax.device_get((final, output, bev))
         one = lambda tree: jax.tree.map(lambda x: np.asarray(x)[0], tree)  # noqa: E731
-        return padded, valid, one(final), one(output), np.asarray(bev)[0]
+        return one(final), one(output), np.asarray(bev)[0]
 
 
 def to_labels(final, output) -> tuple[kitti.ObjectLabels, np.ndarray]:

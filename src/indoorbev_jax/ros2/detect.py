@@ -27,7 +27,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from indoorbev_jax.data import kitti
-from indoorbev_jax.data.dataset import pad_points
 from indoorbev_jax.predict import Predictor, load_model, to_labels
 from indoorbev_jax.ros2 import messages as M
 from indoorbev_jax.rosbag import (
@@ -104,7 +103,7 @@ class Detector:
             points = pointcloud2_to_points(msg, source)
         except BagError as e:
             return self._empty(stamp, frame, str(e))
-        _, valid, counts = pad_points(points, self.config.grid, self.config.data.max_points)
+        padded, valid, counts = self.predictor.prepare(points)
         notes = []
         if counts["nonfinite_points"]:
             notes.append(f"{counts['nonfinite_points']} of {len(points)} points are not finite")
@@ -120,7 +119,7 @@ class Detector:
             why = "empty" if len(points) == 0 else "no finite point inside the grid"
             return self._empty(stamp, frame, f"{source}: {why}; {len(points)} points")
         start = time.perf_counter()
-        _, _, final, output, _ = self.predictor(points)
+        final, output, _ = self.predictor.infer(padded, valid)
         infer_ms = 1e3 * (time.perf_counter() - start)
         labels, ids = to_labels(final, output)
         warning = f"{source}: {'; '.join(notes)} (those points are skipped)" if notes else None
