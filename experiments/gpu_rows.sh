@@ -37,3 +37,6 @@ row --preset paper --mode fwd --batch 16 --reps 5 --peer convT2
 row --preset paper --mode fwd --batch 16 --reps 5 --peer convT2 --bf16
 row --preset paper --mode train --batch 2 --reps 10 --peer convT2
 row --preset small --mode train --batch 4 --reps 20 --peer convT2
+# The measured alternative to the paper's full-resolution cross-attention memory (masks stay
+# full resolution): its speed on the GPU, interleaved with the paper setting.
+row --preset paper --mode fwd --batch 1 --reps 20 --only jax --vs head.memory_stride=4
