@@ -136,6 +136,24 @@ def test_point_noise_only_fills_free_slots_and_stays_in_workspace():
     )
 
 
+def test_intensity_dropout_zeroes_whole_frames_and_leaves_the_rest():
+    frame = make_frame()
+    keys = jax.random.split(jax.random.key(4), 64)
+    base = dataclasses.replace(OFF, point_drop_prob=0.1, jitter_std=0.01, shuffle_points=True)
+    run = jax.vmap(lambda k, c: aug.point_noise(k, frame, GRID, c), in_axes=(0, None))
+    plain = run(keys, base)
+    dropped = run(keys, dataclasses.replace(base, intensity_drop_prob=0.5))
+    # Same draws for everything else: validity, order and coordinates are unchanged.
+    np.testing.assert_array_equal(dropped.point_valid, plain.point_valid)
+    np.testing.assert_array_equal(dropped.points[..., :3], plain.points[..., :3])
+    i_plain, i_drop = np.asarray(plain.points[..., 3]), np.asarray(dropped.points[..., 3])
+    assert (i_plain > 0).any(axis=1).all()
+    zeroed = (i_drop == 0).all(axis=1)
+    kept = (i_drop == i_plain).all(axis=1)
+    assert (zeroed ^ kept).all()  # a frame loses all of its intensity or none of it
+    assert 16 <= zeroed.sum() <= 48  # Binomial(64, 0.5): outside this with p < 1e-4
+
+
 def test_mask_perturbation_dilates_or_erodes():
     frame = make_frame()
     out = aug.mask_perturbation(

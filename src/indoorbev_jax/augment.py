@@ -111,7 +111,8 @@ def global_transform(key: jax.Array, frame: Batch, grid: GridConfig, cfg: Augmen
 
 
 def point_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig) -> Batch:
-    """Jitter, random dropping, one range-band dropout, clutter injection, shuffling."""
+    """Jitter, random dropping, one range-band dropout, clutter injection, intensity
+    dropout (the whole frame's), shuffling."""
     k_jit, k_drop, k_band, k_r0, k_noise, k_perm = jax.random.split(key, 6)
     n = frame.points.shape[0]
     points = frame.points.at[:, :3].add(cfg.jitter_std * jax.random.normal(k_jit, (n, 3)))
@@ -128,6 +129,10 @@ def point_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConf
         hi = jnp.array([grid.x_range[1], grid.y_range[1], grid.z_range[1], 1.0])
         clutter = jax.random.uniform(k_noise, (n_noise, 4), minval=lo, maxval=hi)
         points, valid = _fill_free_slots(points, valid, clutter, jnp.ones(n_noise, bool))
+    if cfg.intensity_drop_prob:
+        # A folded key leaves the other draws, and so earlier runs' data, unchanged.
+        no_intensity = jax.random.bernoulli(jax.random.fold_in(key, 1), cfg.intensity_drop_prob)
+        points = points.at[:, 3].multiply(jnp.where(no_intensity, 0.0, 1.0))
     if cfg.shuffle_points:
         # One sort by random 32-bit keys (jax.random.permutation sorts twice to break
         # ties; a tie among 2^32 keys only keeps two points in their order).

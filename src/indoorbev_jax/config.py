@@ -332,6 +332,7 @@ class AugmentConfig:
     range_dropout_prob: float = 0.2  # drop one random range band of the frame
     range_dropout_width: float = 0.5  # metres
     noise_points: float = 0.01  # fraction of max_points injected as uniform clutter
+    intensity_drop_prob: float = 0.0  # per frame: every intensity 0 (a sensor without it)
     shuffle_points: bool = True
     box_noise_prob: float = 0.5  # per object
     box_translation_std: float = 0.1  # metres
@@ -349,6 +350,7 @@ class AugmentConfig:
             "box_noise_prob",
             "mask_perturb_prob",
             "noise_points",
+            "intensity_drop_prob",
         ):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
