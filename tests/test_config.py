@@ -5,6 +5,7 @@ import dataclasses
 import pytest
 
 from indoorbev_jax.config import (
+    AugmentConfig,
     BackboneConfig,
     Config,
     ConfigError,
@@ -35,6 +36,7 @@ def test_preset_grids():
         (lambda: HeadConfig(num_heads=5), "head.num_heads"),
         (lambda: TrainConfig(warmup_steps=10, total_steps=5), "train.warmup_steps"),
         (lambda: TrainConfig(ema_decay=1.0), "train.ema_decay"),
+        (lambda: AugmentConfig(intensity_drop_prob=1.5), "augment.intensity_drop_prob"),
         (
             lambda: dataclasses.replace(Config.tiny(), head=HeadConfig(num_queries=4)),
             "data.max_objects",
