@@ -153,3 +153,50 @@ def test_bench_model_names_an_xla_option_without_a_value(capsys):
     with pytest.raises(SystemExit):  # an empty variant
         bench.main(["--preset", "tiny", "--xla-vs", "a=b", "--xla-vs", " "])
     assert "--xla-vs expects NAME=VALUE, got ''" in capsys.readouterr().err
+
+
+def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
+    import dataclasses
+
+    import numpy as np
+
+    from indoorbev_jax.predict import average_models, export_model, load_model
+
+    rng = np.random.default_rng(0)
+    trees = [
+        {"params": {"a": rng.normal(size=(3, 2)).astype(np.float32), "b": rng.normal(size=4)}}
+        for _ in range(3)
+    ]
+    tiny = Config.tiny()
+    paths = [export_model(t, tiny, tmp_path / f"m{k}.msgpack") for k, t in enumerate(trees)]
+    config, mean = average_models(paths)
+    assert config == tiny
+    for name in ("a", "b"):
+        expected = np.mean([t["params"][name].astype(np.float64) for t in trees], axis=0)
+        assert mean["params"][name].dtype == trees[0]["params"][name].dtype
+        np.testing.assert_allclose(mean["params"][name], expected, rtol=1e-6)
+
+    # The script writes the same average with the thresholds it is given.
+    script = _script("average_models")
+    out = tmp_path / "soup.msgpack"
+    script.main([*map(str, paths), "--out", str(out), "--score-threshold", "0.3"])
+    back_config, back = load_model(out)
+    assert back_config.inference.score_threshold == 0.3
+    np.testing.assert_array_equal(back["params"]["a"], mean["params"]["a"])
+
+    # A model of another grid, another shape or another structure is named, nothing written.
+    other_grid = dataclasses.replace(tiny, grid=dataclasses.replace(tiny.grid, cell_size=0.2))
+    bad_grid = export_model(trees[1], other_grid, tmp_path / "grid.msgpack")
+    with pytest.raises(ValueError, match=rf"{bad_grid}: grid\.cell_size = 0\.2, but"):
+        average_models([paths[0], bad_grid])
+    wide = {"params": {"a": np.zeros((3, 3), np.float32), "b": np.zeros(4)}}
+    bad_shape = export_model(wide, tiny, tmp_path / "wide.msgpack")
+    with pytest.raises(ValueError, match=rf"{bad_shape}: parameter .*'a'.* has shape \(3, 3\)"):
+        average_models([paths[0], bad_shape])
+    fewer = export_model({"params": {"a": trees[0]["params"]["a"]}}, tiny, tmp_path / "f.msgpack")
+    with pytest.raises(ValueError, match=rf"{fewer}: no parameter .*'b'"):
+        average_models([paths[0], fewer])
+    with pytest.raises(SystemExit) as exit_info:
+        script.main([str(paths[0]), "--out", str(tmp_path / "one.msgpack")])
+    assert exit_info.value.code == 2 and not (tmp_path / "one.msgpack").exists()
+    assert "expected at least two models, got 1" in capsys.readouterr().err

@@ -113,6 +113,61 @@ def load_model(path: str | os.PathLike) -> tuple[Config, Any]:
     return Config.from_dict(json.loads(payload["config"])), payload["params"]
 
 
+# The config sections that fix what a parameter means; the rest (training, loss, inference
+# thresholds) may differ between models that are averaged.
+ARCHITECTURE_SECTIONS = ("grid", "encoder", "backbone", "head")
+
+
+def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
+    """(config, params): the uniform average of the parameters of ``paths`` (a "model soup").
+
+    Meant for runs continued from one common model, whose average usually lies in the same
+    basin and validates better than each. The config is the first model's; every model must
+    share its ``ARCHITECTURE_SECTIONS`` and parameter shapes, or the error names the file and
+    the field or parameter that differs.
+
+    Args:
+      paths: model files or run directories (``load_model``), at least two.
+    """
+    if len(paths) < 2:
+        raise ValueError(f"average_models: expected at least two models, got {len(paths)}")
+    first_path, *rest = paths
+    config, first = load_model(first_path)
+    flat_first = dict(jax.tree_util.tree_flatten_with_path(first)[0])
+    total = {k: np.array(v, np.float64) for k, v in flat_first.items()}  # a copy
+    for path in rest:
+        other_config, params = load_model(path)
+        for section in ARCHITECTURE_SECTIONS:
+            mine, theirs = getattr(config, section), getattr(other_config, section)
+            if mine != theirs:
+                field = next(
+                    f for f in mine.__dataclass_fields__ if getattr(mine, f) != getattr(theirs, f)
+                )
+                raise ValueError(
+                    f"{path}: {section}.{field} = {getattr(theirs, field)!r}, but "
+                    f"{first_path} has {getattr(mine, field)!r}; only models of one "
+                    f"architecture can be averaged"
+                )
+        flat = dict(jax.tree_util.tree_flatten_with_path(params)[0])
+        for key in flat_first.keys() | flat.keys():
+            name = jax.tree_util.keystr(key)
+            if key not in flat or key not in flat_first:
+                where = path if key not in flat else first_path
+                raise ValueError(f"{where}: no parameter {name}; the models differ in structure")
+            if np.shape(flat[key]) != np.shape(flat_first[key]):
+                raise ValueError(
+                    f"{path}: parameter {name} has shape {np.shape(flat[key])}, but "
+                    f"{first_path} has {np.shape(flat_first[key])}"
+                )
+            total[key] += np.asarray(flat[key], np.float64)
+    treedef = jax.tree_util.tree_structure(first)
+    leaves = [
+        (total[k] / len(paths)).astype(np.asarray(v).dtype)
+        for k, v in jax.tree_util.tree_flatten_with_path(first)[0]
+    ]
+    return config, jax.tree_util.tree_unflatten(treedef, leaves)
+
+
 def iter_frames(path: str | os.PathLike, topic: str | None = None) -> Iterator:
     """Yields (frame id, points [N, 4], stamp ns or None, frame name) from INPUT."""
     path = Path(path)

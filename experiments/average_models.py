@@ -1,0 +1,46 @@
+"""Average models' parameters into one file: ``python experiments/average_models.py A B --out F``.
+
+A uniform "model soup" of runs continued from one common model (``train.py --init-from``):
+their average usually validates better than each, at no inference cost. Check it on the
+validation split (``experiments/eval_sim.py --split val``) before shipping it. The config
+(thresholds included) is the first model's unless set here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+
+import jax
+
+from indoorbev_jax.config import ConfigError
+from indoorbev_jax.predict import average_models, export_model
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("models", nargs="+", help="model files or run directories (2 or more)")
+    p.add_argument("--out", required=True, help="model file to write (.msgpack)")
+    p.add_argument("--score-threshold", type=float, default=None, help="inference.score_threshold")
+    p.add_argument("--mask-threshold", type=float, default=None, help="inference.mask_threshold")
+    args = p.parse_args(argv)
+    chosen = {"score_threshold": args.score_threshold, "mask_threshold": args.mask_threshold}
+    chosen = {k: v for k, v in chosen.items() if v is not None}
+    try:
+        config, params = average_models(args.models)
+        if chosen:
+            inference = dataclasses.replace(config.inference, **chosen)
+            config = dataclasses.replace(config, inference=inference)
+    except (ValueError, FileNotFoundError, ConfigError) as e:
+        p.error(str(e))
+    path = export_model(params, config, args.out)
+    count = sum(math.prod(x.shape) for x in jax.tree.leaves(params))
+    print(f"average of {len(args.models)} models ({count:,} parameters, score threshold "
+          f"{config.inference.score_threshold}, mask threshold "
+          f"{config.inference.mask_threshold}) -> {path} "
+          f"({path.stat().st_size / 2**20:.1f} MiB)")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
