@@ -9,13 +9,12 @@ validation split (``experiments/eval_sim.py --split val``) before shipping it. T
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 
 import jax
 
 from indoorbev_jax.config import ConfigError
-from indoorbev_jax.predict import average_models, export_model
+from indoorbev_jax.predict import average_models, export_model, with_thresholds
 
 
 def main(argv=None) -> None:
@@ -25,13 +24,9 @@ def main(argv=None) -> None:
     p.add_argument("--score-threshold", type=float, default=None, help="inference.score_threshold")
     p.add_argument("--mask-threshold", type=float, default=None, help="inference.mask_threshold")
     args = p.parse_args(argv)
-    chosen = {"score_threshold": args.score_threshold, "mask_threshold": args.mask_threshold}
-    chosen = {k: v for k, v in chosen.items() if v is not None}
     try:
         config, params = average_models(args.models)
-        if chosen:
-            inference = dataclasses.replace(config.inference, **chosen)
-            config = dataclasses.replace(config, inference=inference)
+        config = with_thresholds(config, args.score_threshold, args.mask_threshold)
     except (ValueError, FileNotFoundError, ConfigError) as e:
         p.error(str(e))
     path = export_model(params, config, args.out)

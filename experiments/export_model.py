@@ -8,13 +8,12 @@ shipped one.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 
 import jax
 
 from indoorbev_jax.config import ConfigError
-from indoorbev_jax.predict import export_model, load_model
+from indoorbev_jax.predict import export_model, load_model, with_thresholds
 from indoorbev_jax.train import load_params
 
 
@@ -38,14 +37,10 @@ def main(argv=None) -> None:
     )
     args = p.parse_args(argv)
     config, params = load_params(args.run, args.which)
-    chosen = {"score_threshold": args.score_threshold, "mask_threshold": args.mask_threshold}
-    chosen = {k: v for k, v in chosen.items() if v is not None}
-    if chosen:
-        try:
-            inference = dataclasses.replace(config.inference, **chosen)
-        except ConfigError as e:
-            p.error(str(e))
-        config = dataclasses.replace(config, inference=inference)
+    try:
+        config = with_thresholds(config, args.score_threshold, args.mask_threshold)
+    except ConfigError as e:
+        p.error(str(e))
     path = export_model(params, config, args.out)
     count = sum(math.prod(x.shape) for x in jax.tree.leaves(params))
     _, back = load_model(path)  # the file must read back to the same parameters

@@ -14,6 +14,7 @@ optionally a bag with the input clouds and the predictions as MarkerArray.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import statistics
@@ -113,6 +114,18 @@ def load_model(path: str | os.PathLike) -> tuple[Config, Any]:
     return Config.from_dict(json.loads(payload["config"])), payload["params"]
 
 
+def with_thresholds(
+    config: Config, score_threshold: float | None = None, mask_threshold: float | None = None
+) -> Config:
+    """``config`` with the inference thresholds that are given (not None) replaced; an
+    out-of-range one raises ``ConfigError`` naming the field."""
+    chosen = {"score_threshold": score_threshold, "mask_threshold": mask_threshold}
+    chosen = {k: v for k, v in chosen.items() if v is not None}
+    if not chosen:
+        return config
+    return dataclasses.replace(config, inference=dataclasses.replace(config.inference, **chosen))
+
+
 # The config sections that fix what a parameter means; the rest (training, loss, inference
 # thresholds) may differ between models that are averaged.
 ARCHITECTURE_SECTIONS = ("grid", "encoder", "backbone", "head")
@@ -160,12 +173,8 @@ def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
                     f"{first_path} has {np.shape(flat_first[key])}"
                 )
             total[key] += np.asarray(flat[key], np.float64)
-    treedef = jax.tree_util.tree_structure(first)
-    leaves = [
-        (total[k] / len(paths)).astype(np.asarray(v).dtype)
-        for k, v in jax.tree_util.tree_flatten_with_path(first)[0]
-    ]
-    return config, jax.tree_util.tree_unflatten(treedef, leaves)
+    leaves = [(total[k] / len(paths)).astype(np.asarray(v).dtype) for k, v in flat_first.items()]
+    return config, jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(first), leaves)
 
 
 def iter_frames(path: str | os.PathLike, topic: str | None = None) -> Iterator:
