@@ -205,3 +205,19 @@ def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
         script.main([str(paths[0]), "--out", str(tmp_path / "one.msgpack")])
     assert exit_info.value.code == 2 and not (tmp_path / "one.msgpack").exists()
     assert "expected at least two models, got 1" in capsys.readouterr().err
+    # A malformed or missing model file is named by the script; nothing is written.
+    garbage = tmp_path / "garbage.msgpack"
+    garbage.write_bytes(b"\x00not msgpack")
+    for bad, message in (
+        (garbage, "not an indoorbev_jax model file"),
+        (tmp_path / "no", "no such"),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            script.main([str(paths[0]), str(bad), "--out", str(tmp_path / "two.msgpack")])
+        assert exit_info.value.code == 2 and not (tmp_path / "two.msgpack").exists()
+        assert f"{bad}: {message}" in capsys.readouterr().err
+    # An out-of-range threshold is named by its field.
+    with pytest.raises(SystemExit) as exit_info:
+        script.main([*map(str, paths[:2]), "--out", str(out), "--mask-threshold", "2"])
+    assert exit_info.value.code == 2
+    assert "inference.mask_threshold': must lie in [0, 1]" in capsys.readouterr().err
