@@ -146,7 +146,8 @@ def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
         raise ValueError(f"average_models: expected at least two models, got {len(paths)}")
     first_path, *rest = paths
     config, first = load_model(first_path)
-    flat_first = dict(jax.tree_util.tree_flatten_with_path(first)[0])
+    pairs, treedef = jax.tree_util.tree_flatten_with_path(first)
+    flat_first = dict(pairs)
     total = {k: np.array(v, np.float64) for k, v in flat_first.items()}  # a copy
     for path in rest:
         other_config, params = load_model(path)
@@ -174,7 +175,7 @@ def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
                 )
             total[key] += np.asarray(flat[key], np.float64)
     leaves = [(total[k] / len(paths)).astype(np.asarray(v).dtype) for k, v in flat_first.items()]
-    return config, jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(first), leaves)
+    return config, jax.tree_util.tree_unflatten(treedef, leaves)
 
 
 def iter_frames(path: str | os.PathLike, topic: str | None = None) -> Iterator:
