@@ -13,6 +13,7 @@ import math
 
 import jax
 
+from indoorbev_jax.cli import add_views_argument
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.predict import average_models, export_model, with_thresholds
 
@@ -23,10 +24,11 @@ def main(argv=None) -> None:
     p.add_argument("--out", required=True, help="model file to write (.msgpack)")
     p.add_argument("--score-threshold", type=float, default=None, help="inference.score_threshold")
     p.add_argument("--mask-threshold", type=float, default=None, help="inference.mask_threshold")
+    add_views_argument(p, "the first model's")
     args = p.parse_args(argv)
     try:
         config, params = average_models(args.models)
-        config = with_thresholds(config, args.score_threshold, args.mask_threshold)
+        config = with_thresholds(config, args.score_threshold, args.mask_threshold, args.views)
     except (ValueError, FileNotFoundError, ConfigError) as e:
         p.error(str(e))
     path = export_model(params, config, args.out)

@@ -21,6 +21,10 @@ forward per batch), and a line of means per combination is printed instead of th
 (``--tables``: and each combination's tables; the JSON holds each combination's full report
 under ``"sweep"``). Pick thresholds on
 ``--split val``, then store them with ``export_model.py``.
+
+Test-time views: ``--views all`` (or a comma list of ``config.VIEWS`` names) runs the model on the
+mirrored and rotated clouds and fuses the outputs (``inference.apply_views``); the default
+is the model file's ``inference.views``.
 The numbers are measured on simulated data: they are not the paper's real-world measurement.
 """
 
@@ -36,6 +40,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from indoorbev_jax.cli import add_views_argument
 from indoorbev_jax.config import ConfigError, InferenceConfig
 from indoorbev_jax.evaluate import report
 from indoorbev_jax.metrics import Evaluator, format_percent
@@ -102,7 +107,9 @@ def evaluate_sim_sweep(
     """``evaluate_sim`` for several inference settings on the same frames, in one pass.
 
     Args:
-      inferences: ``InferenceConfig`` per evaluator (``config.inference`` is not used).
+      inferences: ``InferenceConfig`` per evaluator (``config.inference`` is not used); they
+        must share ``views`` and ``view_iou``, and the first one's ``mask_threshold`` is the
+        one that fuses the views (``inference.apply_views``).
       intensity_factor: the simulated intensity is multiplied by this before the model sees
         it (1: as simulated), to measure what other intensity units do to the model.
 
@@ -113,12 +120,14 @@ def evaluate_sim_sweep(
     from indoorbev_sim.generate import jitted_generate
     from tqdm import tqdm
 
-    from indoorbev_jax.inference import panoptic_inference
+    from indoorbev_jax.inference import apply_views, panoptic_inference
     from indoorbev_jax.models import IndoorBEV
 
     if frames % batch:
         raise ValueError(f"--frames {frames} must be a multiple of --batch {batch}")
     inferences = tuple(inferences)
+    if len({(i.views, i.view_iou) for i in inferences}) > 1:
+        raise ValueError("inferences: every setting of a sweep must share views and view_iou")
     # The simulation does not read the thresholds: one compiled generator for all of them.
     sim_config = dataclasses.replace(config, inference=InferenceConfig())
     generate = jitted_generate(sim_config, split, batch)
@@ -127,7 +136,7 @@ def evaluate_sim_sweep(
     @jax.jit
     def predict(params, points, valid):
         points = points.at[..., 3].multiply(intensity_factor)
-        predictions = model.apply(params, points, valid)
+        predictions = apply_views(model, params, points, valid, inferences[0])
         return tuple(panoptic_inference(predictions, inference) for inference in inferences)
 
     names = config.data.class_names
@@ -197,6 +206,10 @@ def main(argv=None) -> None:
         help="multiply the simulated intensity by this (150: a Livox driver's units fed raw; "
         "0: a sensor without intensity)",
     )
+    add_views_argument(p, "the model's")
+    p.add_argument(
+        "--view-iou", type=float, default=None, help="inference.view_iou (default: the model's)"
+    )
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     try:
@@ -205,12 +218,15 @@ def main(argv=None) -> None:
         p.exit(2, f"eval_sim: {e}\n")
     scores = args.score_threshold or (config.inference.score_threshold,)
     masks = args.mask_threshold or (config.inference.mask_threshold,)
+    views = {"views": args.views, "view_iou": args.view_iou}
+    views = {k: v for k, v in views.items() if v is not None}
     inferences = []
     for score, mask in itertools.product(scores, masks):
-        try:  # InferenceConfig checks the range
-            inferences.append(
-                dataclasses.replace(config.inference, score_threshold=score, mask_threshold=mask)
+        try:  # InferenceConfig checks the range, Config the views against the grid
+            inference = dataclasses.replace(
+                config.inference, score_threshold=score, mask_threshold=mask, **views
             )
+            inferences.append(dataclasses.replace(config, inference=inference).inference)
         except ConfigError as e:
             p.error(str(e))
     start = time.perf_counter()
@@ -224,7 +240,8 @@ def main(argv=None) -> None:
     names = [f"{v}*" if v in held_out else v for v in ALL_VARIANTS]
     title = "per object variant (* held out of train and val)"
     setup = {"model": str(args.model), "split": args.split, "frames": args.frames,
-             "seed": args.seed, "intensity_factor": args.intensity_factor}  # fmt: skip
+             "seed": args.seed, "intensity_factor": args.intensity_factor,
+             "views": list(inferences[0].views), "view_iou": inferences[0].view_iou}  # fmt: skip
     sweep = []
     for inference, evaluator in zip(inferences, evaluators, strict=True):
         text, payload = report(
@@ -238,6 +255,8 @@ def main(argv=None) -> None:
         f"frames, seed {args.seed}"  # fmt: skip
     if args.intensity_factor != 1.0:
         head += f", intensity x {args.intensity_factor:g}"
+    if inferences[0].views != ("identity",):
+        head += f", {len(inferences[0].views)} views fused at IoU {inferences[0].view_iou:g}"
     seconds = f"{time.perf_counter() - start:.0f} s"
     if len(sweep) == 1:
         inference, text, payload = sweep[0]

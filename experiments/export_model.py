@@ -2,16 +2,19 @@
 
 The file (msgpack: config + parameters, written atomically) is what ``indoorbev predict``,
 ``indoorbev ros2 detect`` and ``make demo`` load; ``models/indoorbev_small.msgpack`` is the
-shipped one.
+shipped one. RUN may also be a model file, to store other inference settings in a copy:
+``export_model.py models/indoorbev_small.msgpack --views identity --out fast.msgpack``.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
 
 import jax
 
+from indoorbev_jax.cli import add_views_argument
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.predict import export_model, load_model, with_thresholds
 from indoorbev_jax.train import load_params
@@ -19,7 +22,7 @@ from indoorbev_jax.train import load_params
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("run", help="run directory (config.json + checkpoints)")
+    p.add_argument("run", help="run directory (config.json + checkpoints) or model file")
     p.add_argument("--out", required=True, help="model file to write (.msgpack)")
     p.add_argument("--which", default="best", choices=("best", "latest"))
     p.add_argument(
@@ -35,10 +38,17 @@ def main(argv=None) -> None:
         default=None,
         help="inference.mask_threshold stored in the file (default: the run's)",
     )
+    add_views_argument(p, "the run's")
     args = p.parse_args(argv)
-    config, params = load_params(args.run, args.which)
     try:
-        config = with_thresholds(config, args.score_threshold, args.mask_threshold)
+        if Path(args.run).is_dir():
+            config, params = load_params(args.run, args.which)
+        else:
+            config, params = load_model(args.run)
+    except (OSError, ValueError) as e:
+        p.exit(2, f"export_model: {e}\n")
+    try:
+        config = with_thresholds(config, args.score_threshold, args.mask_threshold, args.views)
     except ConfigError as e:
         p.error(str(e))
     path = export_model(params, config, args.out)
@@ -47,9 +57,11 @@ def main(argv=None) -> None:
     same = jax.tree.all(jax.tree.map(lambda a, b: bool((a == b).all()), params, back))
     if not same:
         raise SystemExit(f"{path}: parameters did not read back unchanged")
-    print(f"{args.run} ({args.which}, preset {config.name}, {count:,} parameters, score "
+    source = args.which if Path(args.run).is_dir() else "model file"
+    print(f"{args.run} ({source}, preset {config.name}, {count:,} parameters, score "
           f"threshold {config.inference.score_threshold}, mask threshold "
-          f"{config.inference.mask_threshold}) -> {path} "
+          f"{config.inference.mask_threshold}, views {','.join(config.inference.views)}) -> "
+          f"{path} "
           f"({path.stat().st_size / 2**20:.1f} MiB)")  # fmt: skip
 
 

@@ -73,15 +73,31 @@ def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tm
     export = _script("export_model")
     params = {"params": {"w": np.arange(3, dtype=np.float32)}}
     export.load_params = lambda run, which: (Config.tiny(), params)  # a run's best checkpoint
+    run = tmp_path / "run"
+    run.mkdir()
     out = tmp_path / "m.msgpack"
     with pytest.raises(SystemExit) as exit_info:
-        export.main(["run", "--out", str(out), "--score-threshold", "1.5"])
+        export.main([str(run), "--out", str(out), "--score-threshold", "1.5"])
     assert exit_info.value.code == 2 and not out.exists()
     assert "inference.score_threshold': must lie in [0, 1]" in capsys.readouterr().err
-    export.main(["run", "--out", str(out), "--score-threshold", "0.3", "--mask-threshold", "0.4"])
+    export.main(
+        [str(run), "--out", str(out), "--score-threshold", "0.3", "--mask-threshold", "0.4"]
+    )
     config, back = load_model(out)
     assert (config.inference.score_threshold, config.inference.mask_threshold) == (0.3, 0.4)
+    assert config.inference.views == ("identity",)
     np.testing.assert_array_equal(back["params"]["w"], params["params"]["w"])
+    # A model file in: the same parameters out with other settings, the rest kept.
+    views = tmp_path / "views.msgpack"
+    with pytest.raises(SystemExit) as exit_info:
+        export.main([str(out), "--out", str(views), "--views", "identity,sideways"])
+    assert exit_info.value.code == 2 and not views.exists()
+    assert "unknown view 'sideways'" in capsys.readouterr().err
+    export.main([str(out), "--out", str(views), "--views", "identity,rotate_90"])
+    config, again = load_model(views)
+    assert config.inference.views == ("identity", "rotate_90")
+    assert config.inference.score_threshold == 0.3
+    np.testing.assert_array_equal(again["params"]["w"], params["params"]["w"])
 
 
 def test_eval_sim_sweep_equals_one_evaluation_per_setting(tmp_path, capsys):
@@ -153,6 +169,14 @@ def test_bench_model_names_an_xla_option_without_a_value(capsys):
     with pytest.raises(SystemExit):  # an empty variant
         bench.main(["--preset", "tiny", "--xla-vs", "a=b", "--xla-vs", " "])
     assert "--xla-vs expects NAME=VALUE, got ''" in capsys.readouterr().err
+
+
+def test_bench_views_names_a_missing_model(tmp_path, capsys):
+    bench = _script("bench_views")
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(["--model", str(tmp_path / "none.msgpack")])
+    assert exit_info.value.code == 2
+    assert "none.msgpack: no such model file or run directory" in capsys.readouterr().err
 
 
 def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):

@@ -258,3 +258,28 @@ def test_nan_intensity_stays_invalid_after_scaling():
     assert np.isnan(scaled[0, 3]) and scaled[1, 3] == 1.0  # 200 > 150: a retro-reflector
     _, valid, counts = P.pad_points(scaled, CFG.grid, CFG.data.max_points)
     assert counts["nonfinite_points"] == 1 and valid.sum() == 1
+
+
+def test_predictor_with_views_maps_features_and_segments_back(model_file, tmp_path):
+    """A mirrored cloud read through the single view ``mirror_y`` is the plain cloud's
+    forward: features and panoptic map come back mirrored; ``predict`` writes its labels."""
+    config, params = P.load_model(model_file)
+    rng = np.random.default_rng(4)
+    cloud = rng.uniform(-3.0, 3.0, (800, 4)).astype(np.float32)
+    cloud[:, 2:] = rng.uniform(0.0, 1.0, (800, 2))
+    mirrored = cloud * np.array([1, -1, 1, 1], np.float32)
+    _, _, _, plain, bev = P.Predictor(config, params)(cloud)
+    one = P.with_thresholds(config, views=("mirror_y",))
+    _, _, final, out, bev_m = P.Predictor(one, params)(mirrored)
+    np.testing.assert_allclose(bev_m, bev[::-1], atol=1e-5)
+    assert (plain.instance_ids > 0).any()
+    np.testing.assert_array_equal(out.instance_ids, plain.instance_ids[::-1])
+    assert final.masks.shape[0] == config.head.num_queries
+    kitti.write_points(tmp_path / "scan.bin", cloud)
+    summary = P.predict(model_file, tmp_path / "scan.bin", tmp_path / "o", pictures=True,
+                        verbose=False, views=("identity", "mirror_y"))  # fmt: skip
+    assert summary["frames"] == 1
+    lines = (tmp_path / "o" / "label_2" / "scan.txt").read_text().splitlines()
+    assert len(lines) == summary["objects"] > 0
+    with pytest.raises(ValueError, match=r"inference\.views.*'flip'"):
+        P.predict(model_file, tmp_path / "scan.bin", tmp_path / "o2", views=("flip",))

@@ -42,6 +42,30 @@ def _add_intensity(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def parse_views(text: str) -> tuple[str, ...]:
+    """argparse type: a comma list of ``config.VIEWS`` names, or 'all' for every one."""
+    from indoorbev_jax.config import VIEWS
+
+    views = tuple(VIEWS) if text == "all" else tuple(v.strip() for v in text.split(","))
+    unknown = [v for v in views if v not in VIEWS]
+    if unknown:
+        msg = f"unknown view {unknown[0]!r}, expected 'all' or names from {', '.join(VIEWS)}"
+        raise argparse.ArgumentTypeError(msg)
+    return views
+
+
+def add_views_argument(parser: argparse.ArgumentParser, default_help: str) -> None:
+    """``--views``: the test-time views (``inference.views``)."""
+    parser.add_argument(
+        "--views",
+        type=parse_views,
+        default=None,
+        help="test-time views fused into one prediction: 'all' (8 forwards per frame, the "
+        "most accurate), 'identity' (1, the fastest) or a comma list of names "
+        f"(default: {default_help})",
+    )
+
+
 def dataset_check(args: argparse.Namespace) -> int:
     """Validates every frame of a dataset folder; prints statistics and the first problems."""
     from indoorbev_jax.data import kitti
@@ -129,6 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     pred.add_argument("--bag-out", default=None, help="also write a bag with the predictions")
     pred.add_argument("--no-pictures", action="store_true")
     _add_intensity(pred)
+    add_views_argument(pred, "the model file's")
     pred.set_defaults(func=run_predict)
 
     ros2 = commands.add_parser("ros2", help="live ROS 2 nodes (pip install -e .[ros])")
@@ -154,6 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     det.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0: never)")
     _add_intensity(det)
+    add_views_argument(det, "the model file's")
     det.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
                      help="the rest goes to rclpy (remappings, log levels)")  # fmt: skip
     det.set_defaults(func=run_ros2_detect)
@@ -178,6 +204,7 @@ def run_ros2_detect(args: argparse.Namespace) -> int:
             ros_args=args.ros_args,
             skip_nonfinite=args.skip_nonfinite,
             intensity=args.intensity,
+            views=args.views,
         )
     except (RosUnavailable, OSError, ValueError) as e:
         print(f"indoorbev ros2 detect: error: {e}", file=sys.stderr)
@@ -197,6 +224,7 @@ def run_predict(args: argparse.Namespace) -> int:
             bag_out=args.bag_out,
             pictures=not args.no_pictures,
             intensity=args.intensity,
+            views=args.views,
         )
     except (OSError, ValueError) as e:  # bad model file, input or bag (rosbag.BagError)
         print(f"indoorbev predict: error: {e}", file=sys.stderr)

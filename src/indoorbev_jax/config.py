@@ -35,6 +35,20 @@ CLASS_NAMES: tuple[str, ...] = (
 NUM_CLASSES = len(CLASS_NAMES)  # background is index NUM_CLASSES
 DYNAMIC_CLASSES: tuple[str, ...] = ("Person", "Robot")
 
+# Test-time views: each one's 2 x 2 map of the points' (x, y). All eight are the symmetries
+# of a square grid centred on the sensor, which training's augmentation (mirror, any yaw)
+# already covers (``inference.apply_views``).
+VIEWS: dict[str, tuple[tuple[int, int], tuple[int, int]]] = {
+    "identity": ((1, 0), (0, 1)),
+    "mirror_y": ((1, 0), (0, -1)),
+    "mirror_x": ((-1, 0), (0, 1)),
+    "rotate_180": ((-1, 0), (0, -1)),
+    "rotate_90": ((0, -1), (1, 0)),
+    "rotate_270": ((0, 1), (-1, 0)),
+    "transpose": ((0, 1), (1, 0)),
+    "antitranspose": ((0, -1), (-1, 0)),
+}
+
 
 class ConfigError(ValueError):
     """A configuration field holds a value that cannot work; the message names the field."""
@@ -92,6 +106,31 @@ class GridConfig:
         h = round((self.y_range[1] - self.y_range[0]) / self.cell_size)
         w = round((self.x_range[1] - self.x_range[0]) / self.cell_size)
         return h, w
+
+
+def check_views(views: tuple[str, ...], grid: GridConfig) -> None:
+    """Raises ``ConfigError`` unless every view maps the grid onto itself cell for cell:
+    symmetric about the sensor along a mirrored axis, square and centred for the views that
+    swap x and y."""
+    x, y = grid.x_range, grid.y_range
+    for v in views:
+        (a, b), (_, d) = VIEWS[v]
+        if b:  # x and y swap
+            if not (math.isclose(x[0], -x[1]) and math.isclose(y[0], -y[1]) and
+                    math.isclose(x[1], y[1])):  # fmt: skip
+                _fail(
+                    "inference.views",
+                    f"{v!r} swaps x and y, which needs a square grid centred on the sensor; "
+                    f"got grid.x_range = {x}, grid.y_range = {y}",
+                )
+            continue
+        for sign, name, (lo, hi) in ((a, "x_range", x), (d, "y_range", y)):
+            if sign < 0 and not math.isclose(lo, -hi):
+                _fail(
+                    "inference.views",
+                    f"{v!r} mirrors grid.{name} = {(lo, hi)}, which is not symmetric about "
+                    "the sensor",
+                )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -307,17 +346,29 @@ class LossConfig:
 
 @dataclasses.dataclass(frozen=True)
 class InferenceConfig:
-    """Panoptic inference thresholds (DESIGN section 9)."""
+    """Panoptic inference thresholds (DESIGN section 9) and test-time views.
+
+    ``views``: the model runs on each of these symmetries of the cloud (``VIEWS``) and the
+    outputs are fused (``inference.apply_views``); ``("identity",)`` is the plain forward.
+    ``view_iou``: least mask IoU for two views' queries to be one object.
+    """
 
     score_threshold: float = 0.8
     mask_threshold: float = 0.5
     overlap_threshold: float = 0.8
+    views: tuple[str, ...] = ("identity",)
+    view_iou: float = 0.5
 
     def __post_init__(self):
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
+        for name in ("score_threshold", "mask_threshold", "overlap_threshold", "view_iou"):
+            v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
-                _fail(f"inference.{f.name}", f"must lie in [0, 1], got {v!r}")
+                _fail(f"inference.{name}", f"must lie in [0, 1], got {v!r}")
+        views = self.views
+        if isinstance(views, str) or not views or any(v not in VIEWS for v in views):
+            _fail("inference.views", f"expected names from {', '.join(VIEWS)}, got {views!r}")
+        if len(set(views)) != len(views):
+            _fail("inference.views", f"{views!r} repeats a view")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -515,6 +566,7 @@ class Config:
             )
         if self.data.num_classes != len(CLASS_NAMES):
             _fail("data.class_names", f"the network has {len(CLASS_NAMES)} classes")
+        check_views(self.inference.views, self.grid)
 
     @property
     def num_classes(self) -> int:

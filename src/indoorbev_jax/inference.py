@@ -25,9 +25,10 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
-from indoorbev_jax.config import InferenceConfig
+from indoorbev_jax.config import VIEWS, InferenceConfig, check_views
 from indoorbev_jax.types import Predictions
 
 
@@ -171,3 +172,164 @@ def panoptic_inference(
             f"predictions.masks: expected [L, B, Q, H, W], got shape {predictions.masks.shape}"
         )
     return panoptic_inference_from_logits(predictions.logits[-1], predictions.masks[-1], config)
+
+
+# Test-time views ----------------------------------------------------------------------------
+#
+# The model runs on mirrored copies of the cloud; each copy's queries are mapped back to the
+# lidar frame and the V * Q queries fused into one set: greedy in descending detection score,
+# a query leads a cluster of the best-overlapping query of every view (mask IoU >= iou); the
+# cluster's class probabilities are the views' mean (a view without a member counts as
+# background) and its mask probability the members' mean. Fused sets are padded with empty
+# queries, so shapes stay static ([B, V * Q, ...]).
+
+
+def view_points(points: jax.Array, view: str) -> jax.Array:
+    """Points [..., 4+] as the sensor sees them in ``view``: (x, y) -> A (x, y)."""
+    a = jnp.array(VIEWS[view], points.dtype)
+    return points.at[..., :2].set(points[..., :2] @ a.T)
+
+
+def _view_cells(view: str, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) [H, W]: the view's cell over each cell of a centred grid."""
+    h, w = shape
+    (a, b), (c, d) = VIEWS[view]
+    # Cell-centre coordinates in cell units about the grid centre: exact half-integers.
+    y, x = np.meshgrid(np.arange(h) - (h - 1) / 2, np.arange(w) - (w - 1) / 2, indexing="ij")
+    xv, yv = a * x + b * y, c * x + d * y
+    return np.rint(yv + (h - 1) / 2).astype(np.int32), np.rint(xv + (w - 1) / 2).astype(np.int32)
+
+
+def unview_cells(grid_values: jax.Array, view: str) -> jax.Array:
+    """Values [..., H, W] on the grid of ``view_points(points, view)``, on the lidar frame's."""
+    rows, cols = _view_cells(view, grid_values.shape[-2:])
+    return grid_values[..., rows, cols]
+
+
+def unview_predictions(predictions: Predictions, view: str) -> Predictions:
+    """Predictions made on ``view_points(points, view)``, mapped back to the lidar frame."""
+    a = jnp.array(VIEWS[view], jnp.float32)
+    masks = unview_cells(predictions.masks, view)
+    xy = predictions.pos[..., :2] @ a  # A is orthogonal: A^-1 = A^T
+    pos = predictions.pos.at[..., :2].set(xy.astype(predictions.pos.dtype))
+    heading = jnp.concatenate([jnp.cos(predictions.yaw), jnp.sin(predictions.yaw)], -1) @ a
+    yaw = jnp.arctan2(heading[..., 1:], heading[..., :1]).astype(predictions.yaw.dtype)
+    return predictions.replace(masks=masks, pos=pos, yaw=yaw)
+
+
+def _fuse_frame(logits, masks, dims, pos, yaw, *, views, mask_threshold, iou_threshold):
+    """One frame: V * Q queries (view-major) -> V * Q fused ones; see the section comment."""
+    p, k = logits.shape
+    q = p // views
+    probs = jax.nn.softmax(logits.astype(jnp.float32), -1)[:, : k - 1]  # [P, K-1]
+    cls_prob = probs.max(-1)
+    grid_shape = masks.shape[1:]
+    masks = masks.astype(jnp.float32).reshape(p, -1)
+    prob = jax.nn.sigmoid(masks)  # [P, HW]
+    binary = (masks >= _logit(mask_threshold)).astype(jnp.float32)
+    area = binary.sum(-1)
+    inter = binary @ binary.T  # [P, P]
+    iou = inter / jnp.maximum(area[:, None] + area[None] - inter, 1.0)
+    # Detection score as in panoptic inference; queries with empty masks never lead.
+    score = jnp.where(area > 0, cls_prob * (prob * binary).sum(-1) / jnp.maximum(area, 1), -1.0)
+
+    def step(_, state):
+        leader_of, free = state
+        i = jnp.argmax(jnp.where(free, score, -2.0))
+        active = free[i] & (score[i] >= 0)
+        # The leader itself is its view's member; elsewhere the best free overlap per view.
+        overlap = jnp.where(free & (iou[i] >= iou_threshold), iou[i], -1.0).at[i].set(2.0)
+        overlap = overlap.reshape(views, q)
+        best = jnp.argmax(overlap, 1) + jnp.arange(views) * q  # [V]
+        member = jnp.zeros(p, bool).at[best].set(overlap.max(1) >= 0) & active
+        return jnp.where(member, i, leader_of), free & ~member
+
+    leader_of, _ = jax.lax.fori_loop(0, p, step, (jnp.full(p, -1, jnp.int32), jnp.ones(p, bool)))
+    member = (leader_of[None, :] == jnp.arange(p)[:, None]).astype(jnp.float32)  # [lead, P]
+    count = member.sum(-1)
+    fg = member @ probs / views
+    fused_logits = jnp.log(
+        jnp.maximum(jnp.concatenate([fg, 1.0 - fg.sum(-1, keepdims=True)], -1), _TINY)
+    )
+    mask_prob = jnp.clip(member @ prob / jnp.maximum(count, 1)[:, None], 1e-6, 1 - 1e-6)
+    fused_masks = jnp.where(count[:, None] > 0, jnp.log(mask_prob) - jnp.log1p(-mask_prob), -1e9)
+    weight = member * cls_prob[None]
+    norm = jnp.maximum(weight.sum(-1, keepdims=True), _TINY)
+    fused_yaw = jnp.arctan2(weight @ jnp.sin(yaw), weight @ jnp.cos(yaw))
+    return (
+        fused_logits.astype(logits.dtype),
+        fused_masks.reshape((p,) + grid_shape),
+        weight @ dims / norm,
+        weight @ pos / norm,
+        fused_yaw,
+    )
+
+
+def fuse_views(
+    predictions: Predictions, mask_threshold: float = 0.5, iou_threshold: float = 0.5
+) -> Predictions:
+    """Fuses the final layers of V views' predictions, all already in the lidar frame.
+
+    Args:
+      predictions: fields with a leading view axis: logits [V, L, B, Q, K], masks
+        [V, L, B, Q, H, W], ...; only the last decoder layer is read.
+      mask_threshold: binarises the masks for the overlaps and the scores.
+      iou_threshold: least mask IoU for two views' queries to be one object.
+
+    Returns:
+      ``Predictions`` with one layer and V * Q queries: logits [1, B, V * Q, K], ...; a
+      query that no cluster kept has background probability 1 and an empty mask.
+    """
+    views = predictions.logits.shape[0]
+    b = predictions.logits.shape[2]
+
+    def last(x):  # [V, L, B, Q, ...] -> [B, V * Q, ...], view-major
+        x = jnp.moveaxis(x[:, -1], 0, 1)
+        return x.reshape((b, -1) + x.shape[3:])
+
+    fuse = functools.partial(
+        _fuse_frame, views=views, mask_threshold=mask_threshold, iou_threshold=iou_threshold
+    )
+    fields = (predictions.logits, predictions.masks, predictions.dims, predictions.pos,
+              predictions.yaw)  # fmt: skip
+    logits, masks, dims, pos, yaw = jax.vmap(fuse)(*(last(x) for x in fields))
+    return Predictions(logits=logits[None], dims=dims[None], pos=pos[None], yaw=yaw[None],
+                       masks=masks[None])  # fmt: skip
+
+
+def apply_views(
+    model, params, points: jax.Array, valid: jax.Array, config: InferenceConfig | None = None,
+    **apply_kwargs,
+) -> Predictions:  # fmt: skip
+    """``model.apply`` with ``config.views``: one batched forward of the V views of the
+    clouds, mapped back to the lidar frame and fused (``fuse_views``). With the single view
+    ``("identity",)`` it is the plain forward, every layer.
+
+    Args:
+      model: an ``IndoorBEV``; its grid must suit the views (``config.check_views``).
+      params, points [B, N, 4], valid [B, N]: as for ``model.apply``.
+      config: the views, ``view_iou`` and the ``mask_threshold`` that binarises masks for the
+        overlaps; None: ``InferenceConfig()``.
+      **apply_kwargs: passed to ``model.apply`` (e.g. ``capture_intermediates``); its
+        extra outputs then come back as well, batch axis [V * B] in view-major order.
+
+    Returns:
+      ``Predictions`` in the lidar frame (with ``(predictions, state)`` when ``model.apply``
+      returns a pair); with several views, one layer of V * Q queries.
+    """
+    config = config or InferenceConfig()
+    views = config.views
+    check_views(views, model.config.grid)
+    if views == ("identity",):
+        return model.apply(params, points, valid, **apply_kwargs)
+    b = points.shape[0]
+    clouds = jnp.concatenate([view_points(points, v) for v in views])  # [V * B, N, 4]
+    out = model.apply(params, clouds, jnp.concatenate([valid] * len(views)), **apply_kwargs)
+    out, extra = out if isinstance(out, tuple) else (out, None)
+    per_view = [
+        unview_predictions(jax.tree.map(lambda x, i=i: x[:, i * b : (i + 1) * b], out), v)
+        for i, v in enumerate(views)
+    ]
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *per_view)
+    fused = fuse_views(stacked, config.mask_threshold, config.view_iou)
+    return fused if extra is None else (fused, extra)

@@ -31,7 +31,7 @@ from indoorbev_jax import viz
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
 from indoorbev_jax.data.dataset import pad_points
-from indoorbev_jax.inference import panoptic_inference
+from indoorbev_jax.inference import apply_views, panoptic_inference, unview_cells
 from indoorbev_jax.models import IndoorBEV
 
 MODEL_FORMAT = "indoorbev_jax-model-v1"
@@ -115,11 +115,16 @@ def load_model(path: str | os.PathLike) -> tuple[Config, Any]:
 
 
 def with_thresholds(
-    config: Config, score_threshold: float | None = None, mask_threshold: float | None = None
+    config: Config,
+    score_threshold: float | None = None,
+    mask_threshold: float | None = None,
+    views: tuple[str, ...] | None = None,
 ) -> Config:
-    """``config`` with the inference thresholds that are given (not None) replaced; an
-    out-of-range one raises ``ConfigError`` naming the field."""
-    chosen = {"score_threshold": score_threshold, "mask_threshold": mask_threshold}
+    """``config`` with the inference settings that are given (not None) replaced: the
+    thresholds and the test-time views (``config.VIEWS``); a bad one raises ``ConfigError``
+    naming the field."""
+    chosen = {"score_threshold": score_threshold, "mask_threshold": mask_threshold,
+              "views": None if views is None else tuple(views)}  # fmt: skip
     chosen = {k: v for k, v in chosen.items() if v is not None}
     if not chosen:
         return config
@@ -213,16 +218,21 @@ class Predictor:
         self.last_counts: dict[str, int] = {}
         self.last_intensity_factor = 1.0
         model = IndoorBEV(config)
+        views = config.inference.views
 
         def run(params, points, valid):
-            predictions, state = model.apply(
+            predictions, state = apply_views(
+                model,
                 params,
                 points,
                 valid,
+                config.inference,
                 capture_intermediates=lambda mdl, _: mdl.name == "encoder",
             )
             output = panoptic_inference(predictions, config.inference)
-            bev = state["intermediates"]["encoder"]["__call__"][0]
+            # The first view's features, mapped back to the lidar frame.
+            bev = state["intermediates"]["encoder"]["__call__"][0][: points.shape[0]]
+            bev = jnp.moveaxis(unview_cells(jnp.moveaxis(bev, -1, 0), views[0]), 0, -1)
             final = jax.tree.map(lambda x: x[-1], predictions)
             return final, output, bev
 
@@ -301,11 +311,13 @@ def predict(
     pictures: bool = True,
     verbose: bool = True,
     intensity: str | float = "auto",
+    views: tuple[str, ...] | None = None,
 ) -> dict:
     """Runs the model over INPUT and writes labels, masks, pictures (and a bag).
 
     ``intensity``: the units of INPUT's intensity (``intensity_factor``; "auto" reads values
-    above 1 as Livox reflectivity 0-255).
+    above 1 as Livox reflectivity 0-255). ``views``: test-time views (``config.VIEWS``;
+    None: the model file's ``inference.views``).
 
     Returns:
       ``{"frames", "latency_ms": {"median", "p90", "max"}, "objects", "thinned_frames"}``;
@@ -314,6 +326,7 @@ def predict(
       ``data.max_points`` (each kept ``max_points``, evenly spread).
     """
     config, params = load_model(model_path)
+    config = with_thresholds(config, views=views)
     predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity)
     out = Path(out)
     names = config.data.class_names

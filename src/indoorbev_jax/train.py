@@ -535,12 +535,12 @@ class MetricsLog:
 
 def make_predict_fn(config: Config) -> Callable:
     """Jitted ``(params, points, valid) -> PanopticOutput`` (last decoder layer)."""
-    from indoorbev_jax.inference import panoptic_inference
+    from indoorbev_jax.inference import apply_views, panoptic_inference
 
     model = IndoorBEV(config)
     return jax.jit(
         lambda params, points, valid: panoptic_inference(
-            model.apply(params, points, valid), config.inference
+            apply_views(model, params, points, valid, config.inference), config.inference
         )
     )
 

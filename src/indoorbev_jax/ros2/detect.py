@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from indoorbev_jax.data import kitti
-from indoorbev_jax.predict import Predictor, load_model, to_labels
+from indoorbev_jax.predict import Predictor, load_model, to_labels, with_thresholds
 from indoorbev_jax.ros2 import messages as M
 from indoorbev_jax.rosbag import (
     MARKER_ARRAY,
@@ -187,6 +187,7 @@ def run_detect_node(
     ros_args: list[str] | None = None,
     skip_nonfinite: bool = False,
     intensity: str | float = "auto",
+    views: tuple[str, ...] | None = None,
 ) -> dict:
     """Runs the detect node until Ctrl-C / SIGTERM (or ``max_frames`` processed frames).
 
@@ -204,6 +205,7 @@ def run_detect_node(
       skip_nonfinite: process the finite points of clouds holding NaN/Inf points
         (default: warn and publish empty outputs for such a cloud).
       intensity: units of the clouds' intensity (``predict.intensity_factor``).
+      views: test-time views (``config.VIEWS``; None: the model file's ``inference.views``).
 
     Returns:
       the statistics of ``_Stats.summary`` (counts and latency percentiles).
@@ -216,6 +218,7 @@ def run_detect_node(
 
         ensure_new(record)
     config, params = load_model(checkpoint)
+    config = with_thresholds(config, views=views)
     detector = Detector(config, params, skip_nonfinite=skip_nonfinite, intensity=intensity)
     compile_s = detector.warmup()
     context, node = runtime.start_node("indoorbev_detect", ros_args)

@@ -1,0 +1,129 @@
+"""Benchmark test-time views: what each added view costs per frame, and where the time goes.
+
+For 1, 2, 4 and 8 views (``config.VIEWS`` in order), one jitted function per count runs
+``inference.apply_views`` + panoptic inference on one simulated held-out frame at batch 1,
+as ``Predictor`` does; the counts are interleaved round by round and the medians printed
+with their ratio to one view. Then the largest count split into its parts, each jitted
+alone: the forward of the V clouds, the fusion (``fuse_views``) and panoptic inference on
+the V * Q fused queries against the plain Q.
+
+Usage::
+
+    JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_views.py
+    JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_views.py --model runs/small --reps 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+
+from indoorbev_jax.config import VIEWS, InferenceConfig
+from indoorbev_jax.inference import (
+    apply_views,
+    fuse_views,
+    panoptic_inference,
+    unview_predictions,
+    view_points,
+)
+from indoorbev_jax.models import IndoorBEV
+from indoorbev_jax.predict import load_model
+
+SHIPPED = "models/indoorbev_small.msgpack"
+
+
+def _median_ms(fn, *args, reps: int) -> float:
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(reps):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - start)
+    return 1e3 * statistics.median(times)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--model", default=SHIPPED, help="model file or run directory")
+    p.add_argument("--reps", type=int, default=10, help="timed calls per count and round")
+    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    try:
+        config, params = load_model(args.model)
+    except (OSError, ValueError) as e:
+        p.exit(2, f"bench_views: {e}\n")
+    from indoorbev_sim.generate import jitted_generate
+
+    base = dataclasses.replace(config, inference=InferenceConfig())
+    data, _ = jitted_generate(base, "test", 1)(jax.random.key(args.seed))
+    points, valid = data.points, data.point_valid
+    params = jax.tree.map(jnp.asarray, params)
+    model = IndoorBEV(config)
+    names = list(VIEWS)
+    counts = [c for c in (1, 2, 4, 8) if c <= len(names)]
+    settings = {c: dataclasses.replace(config.inference, views=tuple(names[:c])) for c in counts}
+    for c in counts:  # the grid must suit every view
+        dataclasses.replace(config, inference=settings[c])
+
+    def end_to_end(inference):
+        return jax.jit(
+            lambda params, points, valid: panoptic_inference(
+                apply_views(model, params, points, valid, inference), inference
+            )
+        )
+
+    fns = {c: end_to_end(settings[c]) for c in counts}
+    print(f"model {args.model} (preset {config.name}), grid {config.grid.shape}, "
+          f"{config.head.num_queries} queries, {int(valid.sum())} points, "
+          f"{jax.devices()[0].device_kind}")  # fmt: skip
+    times = {c: [] for c in counts}
+    for _ in range(args.rounds):
+        for c in counts:
+            times[c].append(_median_ms(fns[c], params, points, valid, reps=args.reps))
+    one = statistics.median(times[1])
+    print("views  median ms/frame (per round)            x one view")
+    for c in counts:
+        rounds = " ".join(f"{t:7.1f}" for t in times[c])
+        print(f"{c:5d}  {statistics.median(times[c]):8.1f}  ({rounds})  "
+              f"{statistics.median(times[c]) / one:6.2f}")  # fmt: skip
+
+    big = counts[-1]
+    inference = settings[big]
+    clouds = jnp.concatenate([view_points(points, v) for v in inference.views])
+    forward = jax.jit(model.apply)
+    out = forward(params, clouds, jnp.concatenate([valid] * big))
+    stacked = jax.tree.map(
+        lambda *x: jnp.stack(x),
+        *[
+            unview_predictions(jax.tree.map(lambda x, i=i: x[:, i : i + 1], out), v)
+            for i, v in enumerate(inference.views)
+        ],
+    )
+    fuse = jax.jit(fuse_views, static_argnums=(1, 2))
+    fused = fuse(stacked, inference.mask_threshold, inference.view_iou)
+    panoptic = jax.jit(panoptic_inference, static_argnums=1)
+    plain = jax.tree.map(lambda x: x[:, :1], out)
+    parts = {
+        "forward, 1 cloud": (forward, params, points, valid),
+        f"forward, {big} clouds": (forward, params, clouds, jnp.concatenate([valid] * big)),
+        f"fusion of {big} x {config.head.num_queries} queries": (
+            fuse, stacked, inference.mask_threshold, inference.view_iou,
+        ),
+        f"panoptic inference, {big * config.head.num_queries} fused queries": (
+            panoptic, fused, inference,
+        ),
+        f"panoptic inference, {config.head.num_queries} queries": (panoptic, plain, inference),
+    }  # fmt: skip
+    print(f"\nparts of {big} views (median ms over {args.reps} calls)")
+    for name, (fn, *fn_args) in parts.items():
+        print(f"  {name:<40} {_median_ms(fn, *fn_args, reps=args.reps):8.1f}")
+
+
+if __name__ == "__main__":
+    main()

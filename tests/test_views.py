@@ -1,0 +1,229 @@
+"""Test-time views: the grid maps against the rasteriser, fusion against a loop re-derivation,
+and the whole path on the tiny model (mirror equivariance of ``apply_views``)."""
+
+import argparse
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from indoorbev_jax.cli import parse_views
+from indoorbev_jax.config import (
+    NUM_CLASSES,
+    VIEWS,
+    Config,
+    ConfigError,
+    GridConfig,
+    InferenceConfig,
+)
+from indoorbev_jax.data.rasterize import rasterize_boxes
+from indoorbev_jax.inference import (
+    apply_views,
+    fuse_views,
+    panoptic_inference,
+    unview_predictions,
+    view_points,
+)
+from indoorbev_jax.types import Predictions
+
+K = NUM_CLASSES + 1
+GRID = GridConfig(x_range=(-2.0, 2.0), y_range=(-2.0, 2.0), cell_size=0.1)
+
+
+def _one_query(mask, pos, yaw):
+    """Predictions with L = B = Q = 1."""
+    return Predictions(
+        logits=jnp.zeros((1, 1, 1, K)),
+        dims=jnp.ones((1, 1, 1, 3)),
+        pos=jnp.asarray(pos, jnp.float32).reshape(1, 1, 1, 3),
+        yaw=jnp.full((1, 1, 1, 1), yaw, jnp.float32),
+        masks=jnp.asarray(mask, jnp.float32).reshape((1, 1, 1) + mask.shape),
+    )
+
+
+@pytest.mark.parametrize("view", list(VIEWS))
+def test_unview_maps_the_views_box_back_onto_the_box(view):
+    """A box seen in a view (centre and heading through the view's map, rasterised there) and
+    mapped back covers exactly the cells of the box rasterised in the lidar frame."""
+    x, y, length, width, yaw = 0.73, -0.41, 1.26, 0.58, 0.37
+    a = np.array(VIEWS[view], np.float64)
+    xv, yv = a @ [x, y]
+    hx, hy = a @ [math.cos(yaw), math.sin(yaw)]
+    yaw_v = math.atan2(hy, hx)
+
+    def raster(bx, by, byaw):
+        boxes = jnp.array([[bx, by, length, width, byaw]], jnp.float32)
+        return np.asarray(rasterize_boxes(boxes, jnp.ones(1, bool), GRID)[1][0])
+
+    want = raster(x, y, yaw)
+    seen = raster(xv, yv, yaw_v)
+    back = unview_predictions(_one_query(seen, [xv, yv, 0.3], yaw_v), view)
+    assert want.sum() > 50
+    np.testing.assert_array_equal(np.asarray(back.masks[0, 0, 0]) > 0.5, want)
+    np.testing.assert_allclose(np.asarray(back.pos).ravel(), [x, y, 0.3], atol=1e-6)
+    assert math.isclose(float(back.yaw.ravel()[0]), yaw, abs_tol=1e-6)
+    # view_points applies the same map to a cloud.
+    pts = jnp.array([[x, y, 0.5, 0.9]], jnp.float32)
+    np.testing.assert_allclose(np.asarray(view_points(pts, view))[0], [xv, yv, 0.5, 0.9], atol=1e-6)
+
+
+def _random_views(rng, views, b, q, h, w, spread):
+    """V views of the same B frames: shared query logits plus per-view noise."""
+    base_logits = rng.normal(0, 2, (b, q, K))
+    base_masks = rng.normal(0, 3, (b, q, h, w))
+    noise = lambda shape: rng.normal(0, spread, shape)  # noqa: E731
+    logits = np.stack([base_logits + noise(base_logits.shape) for _ in range(views)])
+    masks = np.stack([base_masks + noise(base_masks.shape) for _ in range(views)])
+    masks[:, :, 0] = -9.0  # query 0: an empty mask in every view
+    return Predictions(
+        logits=jnp.asarray(logits[:, None], jnp.float32),
+        dims=jnp.asarray(rng.uniform(0.2, 2, (views, 1, b, q, 3)), jnp.float32),
+        pos=jnp.asarray(rng.normal(0, 2, (views, 1, b, q, 3)), jnp.float32),
+        yaw=jnp.asarray(rng.uniform(-3, 3, (views, 1, b, q, 1)), jnp.float32),
+        masks=jnp.asarray(masks[:, None], jnp.float32),
+    )
+
+
+def _fuse_reference(pred, mask_threshold, iou_threshold):
+    """Loops in float64: greedy clusters by score, one member per view, means."""
+    logits = np.asarray(pred.logits[:, -1], np.float64)  # [V, B, Q, K]
+    masks = np.asarray(pred.masks[:, -1], np.float64)
+    dims, pos, yaw = (np.asarray(x[:, -1], np.float64) for x in (pred.dims, pred.pos, pred.yaw))
+    v, b, q = logits.shape[:3]
+    e = np.exp(logits - logits.max(-1, keepdims=True))
+    probs = (e / e.sum(-1, keepdims=True))[..., :-1]
+    prob = 1 / (1 + np.exp(-masks))
+    binary = prob >= mask_threshold
+    out = {k: [] for k in ("fg", "mask", "dims", "pos", "yaw", "count")}
+    for f in range(b):
+        flat = lambda x: x[:, f].reshape((v * q,) + x.shape[3:])  # noqa: E731,B023
+        pb, pp, pr = flat(probs), flat(prob), flat(binary).reshape(v * q, -1)
+        pd, ppos, pyaw = flat(dims), flat(pos), flat(yaw)
+        area = pr.sum(-1)
+        score = [
+            pb[i].max() * pp[i].ravel()[pr[i]].mean() if area[i] else -1.0 for i in range(v * q)
+        ]
+        free = [area[i] > 0 for i in range(v * q)]
+        fg = np.zeros((v * q, K - 1))
+        mask = np.full((v * q,) + pp.shape[1:], np.nan)
+        d, p, y = np.zeros((v * q, 3)), np.zeros((v * q, 3)), np.zeros((v * q, 1))
+        count = np.zeros(v * q, int)
+        for i in sorted(range(v * q), key=lambda i: -score[i]):  # stable: lower index first
+            if not free[i]:
+                continue
+            members = [i]
+            for view in range(v):
+                if view == i // q:
+                    continue
+                best, best_iou = None, iou_threshold
+                for j in range(view * q, (view + 1) * q):
+                    if not free[j]:
+                        continue
+                    iou = (pr[i] & pr[j]).sum() / (pr[i] | pr[j]).sum()
+                    if iou >= best_iou and (best is None or iou > best_iou):
+                        best, best_iou = j, iou
+                if best is not None:
+                    members.append(best)
+            for j in members:
+                free[j] = False
+            wts = np.array([pb[j].max() for j in members])
+            fg[i] = pb[members].sum(0) / v
+            mask[i] = pp[members].mean(0)
+            d[i], p[i] = wts @ pd[members] / wts.sum(), wts @ ppos[members] / wts.sum()
+            y[i] = np.arctan2(wts @ np.sin(pyaw[members]), wts @ np.cos(pyaw[members]))
+            count[i] = len(members)
+        for k, x in zip(out, (fg, mask, d, p, y, count), strict=True):
+            out[k].append(x)
+    return {k: np.stack(x) for k, x in out.items()}
+
+
+@pytest.mark.parametrize("spread", [0.3, 2.0])
+def test_fuse_views_matches_loop_rederivation(spread):
+    rng = np.random.default_rng(int(spread * 10))
+    pred = _random_views(rng, views=3, b=2, q=5, h=6, w=7, spread=spread)
+    fused = jax.jit(fuse_views, static_argnums=(1, 2))(pred, 0.5, 0.4)
+    ref = _fuse_reference(pred, 0.5, 0.4)
+    assert fused.logits.shape == (1, 2, 15, K) and fused.masks.shape == (1, 2, 15, 6, 7)
+    lead = ref["count"] > 0
+    assert 0 < lead.sum() < lead.size  # some clusters merge, some queries are absorbed
+    assert not lead[:, [0, 5, 10]].any()  # empty masks lead nothing
+    probs = np.asarray(jax.nn.softmax(fused.logits[0], -1))
+    np.testing.assert_allclose(probs[..., :-1][lead], ref["fg"][lead], atol=1e-5)
+    assert (probs[..., :-1][~lead] < 1e-20).all()
+    mask_prob = np.asarray(jax.nn.sigmoid(fused.masks[0]))
+    np.testing.assert_allclose(mask_prob[lead], np.clip(ref["mask"][lead], 1e-6, 1 - 1e-6),
+                               atol=1e-5)  # fmt: skip
+    assert (mask_prob[~lead] == 0).all()
+    for name in ("dims", "pos", "yaw"):
+        np.testing.assert_allclose(
+            np.asarray(getattr(fused, name)[0])[lead], ref[name][lead], atol=1e-4, err_msg=name
+        )
+
+
+def test_identical_views_fuse_to_the_plain_inference():
+    rng = np.random.default_rng(5)
+    pred = _random_views(rng, views=1, b=2, q=6, h=8, w=8, spread=0.0)
+    copies = jax.tree.map(lambda x: jnp.concatenate([x] * 4), pred)
+    cfg = InferenceConfig(score_threshold=0.2, overlap_threshold=0.5)
+    plain = panoptic_inference(jax.tree.map(lambda x: x[0], pred), cfg)
+    fused = panoptic_inference(fuse_views(copies, cfg.mask_threshold, cfg.view_iou), cfg)
+    assert np.asarray(plain.segment_valid).any()
+    np.testing.assert_array_equal(fused.instance_ids, plain.instance_ids)
+    np.testing.assert_array_equal(fused.det_valid[:, :6], plain.det_valid)
+    assert not np.asarray(fused.det_valid[:, 6:]).any()
+    np.testing.assert_allclose(fused.det_scores[:, :6], plain.det_scores, rtol=1e-5)
+    detected = np.asarray(plain.det_valid)
+    assert detected.sum() == 10  # all but the empty query 0 of each frame
+    np.testing.assert_array_equal(
+        np.asarray(fused.det_classes[:, :6])[detected], np.asarray(plain.det_classes)[detected]
+    )
+
+
+def test_apply_views_is_mirror_equivariant_on_the_tiny_model():
+    """The same two clouds in the same order, read as (P; identity, mirror_y) and as
+    (mirror_y(P); mirror_y, identity): the fused outputs are each other's mirror images."""
+    from indoorbev_jax.models import IndoorBEV
+    from indoorbev_jax.train import init_state
+
+    config = Config.tiny()
+    params = init_state(config, jax.random.key(0)).params
+    model = IndoorBEV(config)
+    rng = np.random.default_rng(3)
+    n = config.data.max_points
+    points = jnp.asarray(rng.uniform(-4, 4, (1, n, 4)) * [1, 1, 0.3, 0.1], jnp.float32)
+    valid = jnp.asarray(rng.uniform(size=(1, n)) < 0.5)
+    first = InferenceConfig(views=("identity", "mirror_y"), mask_threshold=0.45)
+    second = dataclasses.replace(first, views=("mirror_y", "identity"))
+    run = jax.jit(lambda p, c, cfg: apply_views(model, p, c, valid, cfg), static_argnums=2)
+    a = run(params, points, first)
+    b = run(params, view_points(points, "mirror_y"), second)
+    q = config.head.num_queries
+    assert a.logits.shape == (1, 1, 2 * q, K) and a.masks.shape[:3] == (1, 1, 2 * q)
+    np.testing.assert_allclose(a.logits, b.logits, atol=1e-5)
+    np.testing.assert_allclose(a.masks, jnp.flip(b.masks, -2), atol=1e-4)
+    np.testing.assert_allclose(a.pos, b.pos * jnp.array([1, -1, 1]), atol=1e-5)
+    np.testing.assert_allclose(jnp.sin(a.yaw), -jnp.sin(b.yaw), atol=1e-5)
+    plain = jax.jit(model.apply)(params, points, valid)
+    identity = run(params, points, InferenceConfig())
+    jax.tree.map(np.testing.assert_array_equal, identity, plain)
+
+
+def test_bad_views_are_named():
+    with pytest.raises(ConfigError, match=r"inference\.views.*'sideways'"):
+        InferenceConfig(views=("identity", "sideways"))
+    with pytest.raises(ConfigError, match=r"inference\.views.*repeats"):
+        InferenceConfig(views=("identity", "identity"))
+    off_centre = GridConfig(x_range=(0.0, 8.0), y_range=(-4.0, 4.0), cell_size=0.5)
+    with pytest.raises(ConfigError, match=r"'mirror_x' mirrors grid\.x_range"):
+        Config(grid=off_centre, inference=InferenceConfig(views=("identity", "mirror_x")))
+    Config(grid=off_centre, inference=InferenceConfig(views=("identity", "mirror_y")))
+    oblong = GridConfig(x_range=(-4.0, 4.0), y_range=(-2.0, 2.0), cell_size=0.5)
+    with pytest.raises(ConfigError, match=r"'rotate_90' swaps x and y"):
+        Config(grid=oblong, inference=InferenceConfig(views=("rotate_90",)))
+    assert parse_views("all") == tuple(VIEWS) and len(VIEWS) == 8
+    assert parse_views("identity, mirror_y") == ("identity", "mirror_y")
+    with pytest.raises(argparse.ArgumentTypeError, match="unknown view 'flip'"):
+        parse_views("identity,flip")
