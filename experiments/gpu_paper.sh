@@ -10,6 +10,9 @@
 # Warp hidden: NO_WHEELS=1 PY=.venv/bin/python PYTHONPATH=DIR (DIR/sitecustomize.py holding
 # `import sys; sys.modules["warp"] = None`) STEPS=2 BATCH=1 EVAL_FRAMES=4 EVAL_BATCH=4.
 # Everything lands in $OUT: gpu_paper.log, metrics.jsonl, config.json, paper_test.json.
+# VIEWS_FRAMES=N (default 0: skipped) adds a third stage: the same checkpoint on N test frames
+# with the 8 test-time views (`--views all`, batch VIEWS_BATCH = 2 frames = 16 forwards),
+# into paper_test_views.json.
 set -u
 OUT=${OUT:-gpu_out}
 mkdir -p "$OUT"
@@ -22,6 +25,8 @@ TRAIN_LIMIT=${TRAIN_LIMIT:-330}
 EVAL_LIMIT=${EVAL_LIMIT:-110}
 EVAL_FRAMES=${EVAL_FRAMES:-512}
 EVAL_BATCH=${EVAL_BATCH:-16}
+VIEWS_FRAMES=${VIEWS_FRAMES:-0}
+VIEWS_BATCH=${VIEWS_BATCH:-2}
 RUN=${RUN:-/tmp/runs/paper_gpu}
 
 # Our two packages without installing them: src/ holds indoorbev_jax, sim/ is indoorbev_sim.
@@ -52,3 +57,8 @@ stage train "$TRAIN_LIMIT" "$PY" experiments/train.py --preset paper --workdir "
 cp "$RUN/metrics.jsonl" "$RUN/config.json" "$OUT/" 2>/dev/null
 stage eval "$EVAL_LIMIT" "$PY" experiments/eval_sim.py --model "$RUN" --frames "$EVAL_FRAMES" \
   --batch "$EVAL_BATCH" --score-threshold 0.3,0.8 --json "$OUT/paper_test.json" --no-progress
+if [ "$VIEWS_FRAMES" -gt 0 ]; then
+  stage views "$EVAL_LIMIT" "$PY" experiments/eval_sim.py --model "$RUN" --frames "$VIEWS_FRAMES" \
+    --batch "$VIEWS_BATCH" --score-threshold 0.3,0.8 --views all \
+    --json "$OUT/paper_test_views.json" --no-progress
+fi
