@@ -12,6 +12,9 @@ DESIGN section 9. Pure JAX with static shapes, so it runs inside a jitted eval s
   probable foreground class, scored ``p_cls * mean(sigmoid(mask) inside the binarised mask)``.
   No score threshold: AP integrates over all scores.
 
+Test-time views (``apply_views``, optional): the model on mirrored and rotated copies of
+the cloud, outputs fused into one query set before panoptic inference.
+
 Example::
 
     out = panoptic_inference(predictions, config.inference)  # last decoder layer
@@ -176,12 +179,13 @@ def panoptic_inference(
 
 # Test-time views ----------------------------------------------------------------------------
 #
-# The model runs on mirrored copies of the cloud; each copy's queries are mapped back to the
-# lidar frame and the V * Q queries fused into one set: greedy in descending detection score,
-# a query leads a cluster of the best-overlapping query of every view (mask IoU >= iou); the
-# cluster's class probabilities are the views' mean (a view without a member counts as
-# background) and its mask probability the members' mean. Fused sets are padded with empty
-# queries, so shapes stay static ([B, V * Q, ...]).
+# The model runs on mirrored and rotated copies of the cloud (``config.VIEWS``); each copy's
+# queries are mapped back to the lidar frame and the V * Q queries fused into one set: greedy
+# in descending detection score, a query leads a cluster of the best-overlapping free query
+# of every view (mask IoU >= view_iou); the cluster's class probabilities are the views'
+# mean (a view without a member counts as background) and its mask probability the members'
+# mean. Fused sets are padded with empty queries, so shapes stay static ([B, V * Q, ...]).
+# docs/METRICS.md "Test-time views" has the full definition.
 
 
 def view_points(points: jax.Array, view: str) -> jax.Array:
