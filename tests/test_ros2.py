@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 from indoorbev_jax import predict as P
-from indoorbev_jax.config import Config, InferenceConfig
+from indoorbev_jax.config import VIEWS, Config, InferenceConfig
 from indoorbev_jax.data import kitti
 from indoorbev_jax.ros2 import RosUnavailable, require_rclpy
 from indoorbev_jax.ros2 import messages as M
-from indoorbev_jax.ros2.detect import OUTPUTS, Detector
+from indoorbev_jax.ros2.detect import OUTPUTS, Detector, speed_hint
 from indoorbev_jax.ros2.record import BagRecorder, read_bag
 from indoorbev_jax.rosbag import MARKER_ARRAY, POINTCLOUD2, cloud_msg, header, typestore
 from indoorbev_jax.train import init_state
@@ -326,3 +326,13 @@ def test_sim_to_detect_loop(model, tmp_path, monkeypatch):
         np.testing.assert_array_equal(live.classes, offline.classes)
         np.testing.assert_allclose(live.pos, offline.pos, atol=1e-4)  # label text: 6 decimals
         np.testing.assert_allclose(live.scores, offline.scores, atol=1e-5)
+
+
+def test_speed_hint_only_when_views_outpace_the_sensor(detector):
+    assert detector.inference_ms() > 0  # the model ran on the dummy cloud
+    assert speed_hint(250.0, ("identity",)) is None  # one view: nothing to trade
+    assert speed_hint(90.0, ("identity", "mirror_y")) is None  # within 100 ms at 10 Hz
+    hint = speed_hint(216.6, tuple(VIEWS))
+    assert hint.startswith("inference takes 217 ms per cloud with 8 test-time views")
+    assert "--views identity" in hint
+    assert speed_hint(216.6, tuple(VIEWS), sensor_hz=4.0) is None

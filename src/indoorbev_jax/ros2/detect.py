@@ -66,6 +66,17 @@ class Result:
     infer_ms: float
 
 
+def speed_hint(infer_ms: float, views: tuple[str, ...], sensor_hz: float = 10.0) -> str | None:
+    """A hint when test-time views make inference slower than the sensor (None otherwise)."""
+    if len(views) == 1 or infer_ms * sensor_hz <= 1e3:
+        return None
+    return (
+        f"inference takes {infer_ms:.0f} ms per cloud with {len(views)} test-time views, "
+        f"slower than a {sensor_hz:g} Hz sensor, so stale clouds will be dropped; "
+        "--views identity runs one forward per cloud"
+    )
+
+
 class Detector:
     """Serialized PointCloud2 in, serialized detections / markers / occupancy out.
 
@@ -88,9 +99,16 @@ class Detector:
         """Runs one dummy cloud through every step (the model compiles, ``rosbags`` builds
         its (de)serializers) so that the first real frame is not late; returns seconds."""
         start = time.perf_counter()
-        cloud = cloud_msg(self.ts, np.zeros((1, 4), np.float32), 0, "warmup")
-        self.process(bytes(self.ts.serialize_cdr(cloud, POINTCLOUD2)))
+        self.process(self._dummy())
         return time.perf_counter() - start
+
+    def inference_ms(self) -> float:
+        """Model + panoptic inference time of one dummy cloud, after ``warmup``."""
+        return self.process(self._dummy()).infer_ms
+
+    def _dummy(self) -> bytes:
+        cloud = cloud_msg(self.ts, np.zeros((1, 4), np.float32), 0, "warmup")
+        return bytes(self.ts.serialize_cdr(cloud, POINTCLOUD2))
 
     def process(self, raw: bytes) -> Result:
         try:
@@ -221,6 +239,9 @@ def run_detect_node(
     config = with_thresholds(config, views=views)
     detector = Detector(config, params, skip_nonfinite=skip_nonfinite, intensity=intensity)
     compile_s = detector.warmup()
+    hint = speed_hint(detector.inference_ms(), config.inference.views)
+    if hint:
+        print(f"indoorbev ros2 detect: {hint}", flush=True)
     context, node = runtime.start_node("indoorbev_detect", ros_args)
     log = node.get_logger()
     out_topics = {k: f"{out_ns.rstrip('/')}/{k}" for k in OUTPUTS}
