@@ -28,8 +28,8 @@ from indoorbev_jax.inference import (
     apply_views,
     fuse_views,
     panoptic_inference,
-    unview_predictions,
-    view_points,
+    unview_batch,
+    view_batch,
 )
 from indoorbev_jax.models import IndoorBEV
 from indoorbev_jax.predict import load_model
@@ -68,8 +68,6 @@ def main(argv=None) -> None:
     names = list(VIEWS)
     counts = [c for c in (1, 2, 4, 8) if c <= len(names)]
     settings = {c: dataclasses.replace(config.inference, views=tuple(names[:c])) for c in counts}
-    for c in counts:  # the grid must suit every view
-        dataclasses.replace(config, inference=settings[c])
 
     def end_to_end(inference):
         return jax.jit(
@@ -95,23 +93,16 @@ def main(argv=None) -> None:
 
     big = counts[-1]
     inference = settings[big]
-    clouds = jnp.concatenate([view_points(points, v) for v in inference.views])
+    clouds, valids = view_batch(points, valid, inference.views)
     forward = jax.jit(model.apply)
-    out = forward(params, clouds, jnp.concatenate([valid] * big))
-    stacked = jax.tree.map(
-        lambda *x: jnp.stack(x),
-        *[
-            unview_predictions(jax.tree.map(lambda x, i=i: x[:, i : i + 1], out), v)
-            for i, v in enumerate(inference.views)
-        ],
-    )
+    stacked = unview_batch(forward(params, clouds, valids), inference.views)
     fuse = jax.jit(fuse_views, static_argnums=(1, 2))
     fused = fuse(stacked, inference.mask_threshold, inference.view_iou)
     panoptic = jax.jit(panoptic_inference, static_argnums=1)
-    plain = jax.tree.map(lambda x: x[:, :1], out)
+    plain = jax.tree.map(lambda x: x[0], stacked)  # the identity view's outputs
     parts = {
         "forward, 1 cloud": (forward, params, points, valid),
-        f"forward, {big} clouds": (forward, params, clouds, jnp.concatenate([valid] * big)),
+        f"forward, {big} clouds": (forward, params, clouds, valids),
         f"fusion of {big} x {config.head.num_queries} queries": (
             fuse, stacked, inference.mask_threshold, inference.view_iou,
         ),

@@ -40,8 +40,9 @@ def main(argv=None) -> None:
     )
     add_views_argument(p, "the run's")
     args = p.parse_args(argv)
+    from_run = Path(args.run).is_dir()
     try:
-        if Path(args.run).is_dir():
+        if from_run:
             config, params = load_params(args.run, args.which)
         else:
             config, params = load_model(args.run)
@@ -57,7 +58,7 @@ def main(argv=None) -> None:
     same = jax.tree.all(jax.tree.map(lambda a, b: bool((a == b).all()), params, back))
     if not same:
         raise SystemExit(f"{path}: parameters did not read back unchanged")
-    source = args.which if Path(args.run).is_dir() else "model file"
+    source = args.which if from_run else "model file"
     print(f"{args.run} ({source}, preset {config.name}, {count:,} parameters, score "
           f"threshold {config.inference.score_threshold}, mask threshold "
           f"{config.inference.mask_threshold}, views {','.join(config.inference.views)}) -> "

@@ -221,6 +221,24 @@ def unview_predictions(predictions: Predictions, view: str) -> Predictions:
     return predictions.replace(masks=masks, pos=pos, yaw=yaw)
 
 
+def view_batch(points: jax.Array, valid: jax.Array, views) -> tuple[jax.Array, jax.Array]:
+    """(points [V * B, N, 4], valid [V * B, N]): the B clouds in each of the V views,
+    view-major, as one batch for the model."""
+    clouds = jnp.concatenate([view_points(points, v) for v in views])
+    return clouds, jnp.concatenate([valid] * len(views))
+
+
+def unview_batch(predictions: Predictions, views) -> Predictions:
+    """Predictions of a ``view_batch`` (batch axis V * B), each view mapped back to the
+    lidar frame and stacked: fields [V, L, B, ...], as ``fuse_views`` takes them."""
+    b = predictions.logits.shape[1] // len(views)
+    per_view = [
+        unview_predictions(jax.tree.map(lambda x, i=i: x[:, i * b : (i + 1) * b], predictions), v)
+        for i, v in enumerate(views)
+    ]
+    return jax.tree.map(lambda *x: jnp.stack(x), *per_view)
+
+
 def _fuse_frame(logits, masks, dims, pos, yaw, *, views, mask_threshold, iou_threshold):
     """One frame: V * Q queries (view-major) -> V * Q fused ones; see the section comment."""
     p, k = logits.shape
@@ -326,14 +344,8 @@ def apply_views(
     check_views(views, model.config.grid)
     if views == ("identity",):
         return model.apply(params, points, valid, **apply_kwargs)
-    b = points.shape[0]
-    clouds = jnp.concatenate([view_points(points, v) for v in views])  # [V * B, N, 4]
-    out = model.apply(params, clouds, jnp.concatenate([valid] * len(views)), **apply_kwargs)
+    out = model.apply(params, *view_batch(points, valid, views), **apply_kwargs)
     out, extra = out if isinstance(out, tuple) else (out, None)
-    per_view = [
-        unview_predictions(jax.tree.map(lambda x, i=i: x[:, i * b : (i + 1) * b], out), v)
-        for i, v in enumerate(views)
-    ]
-    stacked = jax.tree.map(lambda *x: jnp.stack(x), *per_view)
+    stacked = unview_batch(out, views)
     fused = fuse_views(stacked, config.mask_threshold, config.view_iou)
     return fused if extra is None else (fused, extra)
