@@ -90,6 +90,10 @@ def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tm
     # A model file in: the same parameters out with other settings, the rest kept.
     views = tmp_path / "views.msgpack"
     with pytest.raises(SystemExit) as exit_info:
+        export.main([str(tmp_path / "gone.msgpack"), "--out", str(views)])
+    assert exit_info.value.code == 2 and not views.exists()
+    assert "gone.msgpack: no such model file or run directory" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
         export.main([str(out), "--out", str(views), "--views", "identity,sideways"])
     assert exit_info.value.code == 2 and not views.exists()
     assert "unknown view 'sideways'" in capsys.readouterr().err
