@@ -26,6 +26,7 @@ from ._ray_constants import (
     ELLIPSOID,
     MINVAL,
     PLANE,
+    PLANE_PARALLEL,
     SPHERE,
 )
 
@@ -65,12 +66,13 @@ def _sphere(p, v, r):
 
 
 def _plane(p, v, size):
-    vz = jnp.where(v[2] < -MINVAL, v[2], -1.0)
+    downward = v[2] < -PLANE_PARALLEL * jnp.sqrt(_dot(v, v))
+    vz = jnp.where(downward, v[2], -1.0)
     x = -p[2] / vz
     inside = ((size[0] <= 0.0) | (jnp.abs(p[0] + x * v[0]) <= size[0])) & (
         (size[1] <= 0.0) | (jnp.abs(p[1] + x * v[1]) <= size[1])
     )
-    return jnp.where((v[2] < -MINVAL) & (x >= 0.0) & inside, x, _MISS)
+    return jnp.where(downward & (x >= 0.0) & inside, x, _MISS)
 
 
 def _ellipsoid(p, v, size):

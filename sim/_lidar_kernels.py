@@ -42,6 +42,7 @@ GEOM_ELLIPSOID = wp.constant(rc.ELLIPSOID)
 GEOM_CYLINDER = wp.constant(rc.CYLINDER)
 GEOM_BOX = wp.constant(rc.BOX)
 MINVAL = wp.constant(rc.MINVAL)
+PLANE_PARALLEL = wp.constant(rc.PLANE_PARALLEL)
 BIG = wp.constant(rc.BIG)
 BOUND_REL = wp.constant(rc.BOUND_REL)
 BOUND_ABS = wp.constant(rc.BOUND_ABS)
@@ -83,7 +84,7 @@ def _ray_sphere(p: wp.vec3, v: wp.vec3, r: float) -> float:
 
 @wp.func
 def _ray_plane(p: wp.vec3, v: wp.vec3, size: wp.vec3) -> float:
-    if v[2] > -MINVAL:
+    if v[2] > -PLANE_PARALLEL * wp.length(v):
         return -1.0
     x = -p[2] / v[2]
     if x < 0.0:

@@ -17,6 +17,7 @@ frame at a time) on the same scene: the tests' oracle and the benchmark's baseli
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import math
@@ -359,7 +360,7 @@ def reference_cast(tpl: scenes_mod.SceneTemplate, size, xpos, xmat, origin, dirs
     Returns:
       distance float64 [R] (-1: miss or beyond max_range), geom_id int32 [R].
     """
-    m = tpl.mj_model
+    m = copy.copy(tpl.mj_model)  # the template's model is cached and stays at rest
     m.geom_size[:] = size
     rb, aabb = scenes_mod.geom_bounds(tpl, jnp.asarray(size))
     m.geom_rbound[:] = np.asarray(rb)

@@ -552,6 +552,11 @@ def cast_geometry(
     directions = jnp.asarray(directions, jnp.float32)
     if origins.shape[-1:] != (3,) or origins.ndim > 2:
         raise ValueError(f"origins must be [3] or [B, 3], got {origins.shape}")
+    if origins.ndim == 2 and origins.shape[0] not in (1, nscene):
+        raise ValueError(
+            f"origins [B, 3] holds one origin per scene ({nscene} here), got {origins.shape}; "
+            "for several origins in one scene, jax.vmap the cast over the origins"
+        )
     if directions.shape[-1:] != (3,) or directions.ndim not in (2, 3):
         raise ValueError(f"directions must be [R, 3] or [B, R, 3], got {directions.shape}")
     single = origins.ndim == 1 and directions.ndim == 2

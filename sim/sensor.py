@@ -120,7 +120,7 @@ def scan(
       pose: sensor pose world <- sensor, ``pos`` [3] or [B, 3], ``rot`` [3, 3] or [B, 3, 3].
       directions: float [R, 3] unit ray directions in the sensor frame (e.g.
         ``pattern.frame(k).directions``), shared by all scenes.
-      key: ``jax.random`` key (one for all B scenes; split internally per scene).
+      key: ``jax.random`` key, one for all B scenes (each scene and ray draws its own noise).
       config: ``SensorConfig``.
       reflectivity: optional float [G] or [B, G] per-geom reflectivity in [0, 1].
       **cast_kwargs: forwarded to ``lidar.scene_geometry``/``cast_geometry`` (geomgroup,
@@ -203,6 +203,9 @@ class MjLidar:
       config: ``SensorConfig``.
       reflectivity: optional float [G] per-geom reflectivity.
       **cast_kwargs: as ``scan`` (geomgroup, bodyexclude, method, cpu_threads, ...).
+        ``bodyexclude`` defaults to the body the site rides on, as MuJoCo's rangefinder
+        sensor does, so the lidar does not see its own housing; a site on the world body
+        excludes nothing (-1), and ``bodyexclude=-1`` sees every body.
     """
 
     def __init__(
@@ -222,6 +225,8 @@ class MjLidar:
             names = [model.site(i).name for i in range(model.nsite)]
             raise ValueError(f"MjLidar: the model has no site {site!r}; sites: {names}")
         self.model, self.site_id = model, site_id
+        body = int(model.site_bodyid[site_id])
+        cast_kwargs.setdefault("bodyexclude", body if body > 0 else -1)
         mx = mjx.put_model(model)
         template = mjx.make_data(mx)
         refl = None if reflectivity is None else jnp.asarray(reflectivity, jnp.float32)

@@ -58,6 +58,34 @@ def test_total_cost_equals_scipy(q, m, n):
     assert all(len(set(row)) == m for row in query_idx)
 
 
+@pytest.mark.parametrize("scale", [1e3, 1e6, 1e9, 1e30, -1e6])
+def test_large_finite_costs_keep_their_order(scale):
+    """Costs far above COST_CAP (and padded entries larger still) are matched as scipy
+    matches them, not clipped into ties."""
+    rng = np.random.default_rng(7)
+    cost, valid = _problems(rng, 60, 12, 8)
+    cost = cost * np.float32(scale)
+    cost = np.where(valid[:, None], cost, np.float32(3e38))  # padding must not set the scale
+    query_idx = np.asarray(_match(cost, valid)[0])
+    for i in range(len(cost)):
+        ref = _scipy_total(cost[i].astype(np.float64), valid[i])
+        ours = _our_total(cost[i].astype(np.float64), valid[i], query_idx[i])
+        np.testing.assert_allclose(ours, ref, rtol=1e-6, atol=abs(scale) * 1e-6)
+    # The 2x2 case the clipping got wrong: the diagonal costs twice the anti-diagonal.
+    big = jnp.array([[[2e6, 1e6], [1e6, 2e6]]], jnp.float32)
+    np.testing.assert_array_equal(np.asarray(_match(big, jnp.ones((1, 2), bool))[0]), [[1, 0]])
+
+
+def test_clean_cost_scales_only_frames_past_the_bound():
+    cost = jnp.array([[[1.0, -50.0], [np.inf, 3.0]], [[4e6, 1.0], [np.nan, -np.inf]]])
+    cleaned = np.asarray(clean_cost(cost))
+    bound = COST_CAP / (2 * 3)
+    np.testing.assert_array_equal(cleaned[0], [[1.0, -50.0], [COST_CAP, 3.0]])  # unchanged
+    scale = 2.0 ** np.ceil(np.log2(4e6 / bound))  # the least power of two
+    assert 4e6 / scale <= bound < 4e6 / (scale / 2)
+    np.testing.assert_array_equal(cleaned[1], [[4e6 / scale, 1.0 / scale], [COST_CAP, -COST_CAP]])
+
+
 def test_non_finite_costs_are_avoided():
     rng = np.random.default_rng(1)
     n, q, m = 200, 12, 6

@@ -18,11 +18,12 @@ import jax
 import jax.numpy as jnp
 import optax
 
-# Non-finite costs become +-COST_CAP and finite ones are clipped to it. The solver adds and
-# subtracts costs to update dual potentials: inf - inf would give NaN and an assignment made
-# of garbage, so every entry must be finite. 1e5 is far above any cost the loss produces for
-# a sane network (each term is O(1)-O(100)) while keeping float32 potentials precise
-# (spacing 0.008 at 1e5).
+# Non-finite costs become +-COST_CAP. The solver adds and subtracts costs to update dual
+# potentials: inf - inf would give NaN and an assignment made of garbage, so every entry
+# must be finite. Finite costs keep their order: a frame whose costs could sum past the cap
+# is scaled down by a power of two (exact in float32, the optimum unchanged), so M finite
+# pairs always cost less than one non-finite pair. The loss's costs (each term O(1)-O(100))
+# are never scaled, and float32 potentials stay precise (spacing 0.008 at 1e5).
 COST_CAP = 1e5
 
 # The solver sees a [M, Q + M] matrix: targets as rows, the Q queries, then M private
@@ -37,18 +38,33 @@ _PAD_QUERY_COST = 2.0
 _DUMMY_COST = 3.0 * COST_CAP
 
 
-def clean_cost(cost: jax.Array) -> jax.Array:
+def clean_cost(cost: jax.Array, valid: jax.Array | None = None) -> jax.Array:
     """The cost with every entry finite, as the solver sees it.
 
     Args:
       cost: [..., Q, M] matching costs, any float dtype, may hold NaN or +-Inf.
+      valid: bool [..., M], which targets are real (None: all); only their finite entries
+        set a frame's scale.
 
     Returns:
-      float32 of the same shape: NaN and +Inf become ``COST_CAP`` (a pair to avoid), -Inf
-      becomes ``-COST_CAP``, finite values are clipped to [-COST_CAP, COST_CAP].
+      float32 of the same shape, every entry in [-COST_CAP, COST_CAP]: NaN and +Inf become
+      ``COST_CAP`` (a pair to avoid), -Inf becomes ``-COST_CAP``. A frame whose largest
+      finite |cost| exceeds ``COST_CAP / (2 (M + 1))`` has its finite entries divided by the
+      least power of two that brings it under that bound; any other frame's are unchanged.
     """
-    cost = jnp.nan_to_num(cost.astype(jnp.float32), nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP)
-    return jnp.clip(cost, -COST_CAP, COST_CAP)
+    cost = cost.astype(jnp.float32)
+    m = cost.shape[-1]
+    finite = jnp.isfinite(cost)
+    if valid is not None:
+        finite_valid = finite & valid[..., None, :]
+    else:
+        finite_valid = finite
+    largest = jnp.max(jnp.where(finite_valid, jnp.abs(cost), 0.0), axis=(-2, -1), keepdims=True)
+    bound = COST_CAP / (2 * (m + 1))
+    # log2 rather than largest / bound: no overflow for costs near float32's max.
+    exponent = jnp.ceil(jnp.log2(jnp.maximum(largest, bound)) - jnp.log2(bound))
+    cost = jnp.where(finite, jnp.ldexp(cost, -exponent.astype(jnp.int32)), cost)
+    return jnp.nan_to_num(cost, nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP)
 
 
 def _match_one(cost: jax.Array, valid: jax.Array) -> jax.Array:
@@ -99,7 +115,7 @@ def match(cost: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
         raise ValueError(f"match: {m} targets cannot all be matched to {q} queries ({cost.shape})")
     # The solver's while loops are not reverse-differentiable and the indices are piecewise
     # constant anyway: stopping the gradient here keeps jax.grad of the loss well defined.
-    cost = jax.lax.stop_gradient(clean_cost(cost))
+    cost = jax.lax.stop_gradient(clean_cost(cost, valid.astype(bool)))
     if m == 0:
         empty = jnp.zeros((b, 0), jnp.int32)
         return empty, empty

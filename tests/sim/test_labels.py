@@ -26,6 +26,7 @@ KEYS = (3, 11)
 def frames():
     """[(batch, info, reference dicts per frame)] for two batches of B frames."""
     gen = generate.jitted_generate(CFG, "train", B)
+    at_rest = scenes.template_for(CFG).mj_model.geom_size.copy()
     out = []
     for seed in KEYS:
         batch, info = jax.tree.map(np.asarray, gen(jax.random.key(seed)))
@@ -39,6 +40,8 @@ def frames():
             for b in range(B)
         ]  # fmt: skip
         out.append((batch, info, refs))
+    # The reference poses a copy: the cached template's model stays at rest.
+    np.testing.assert_array_equal(scenes.template_for(CFG).mj_model.geom_size, at_rest)
     return out
 
 

@@ -207,6 +207,9 @@ def test_cpu_threads_split_launches_without_changing_results(scenes, monkeypatch
             assert ok.mean() >= 0.9999
     with pytest.raises(ValueError, match="cpu_threads"):
         lidar.cast_rays(mx, mjx.put_data(m, d), origins[0], dirs, MAX_RANGE, cpu_threads=0)
+    # Per-ray origins are not a per-scene batch: the error says so instead of broadcasting.
+    with pytest.raises(ValueError, match=r"one origin per scene \(1 here\), got \(5, 3\).*vmap"):
+        lidar.cast_rays(mx, mjx.put_data(m, d), np.zeros((5, 3)), dirs[:5], MAX_RANGE)
 
 
 @pytest.mark.parametrize("method", ["binned", "jax"])
@@ -243,6 +246,32 @@ def test_filters_max_range_and_plane_conventions(method):
     # The finite plane is hit from above only: from below every ray misses it.
     dist, gid = lidar.cast_rays(mx, dx, jnp.array([0.0, 0.0, -1.5]), dirs, 30.0, method=method)
     assert not np.any(np.asarray(gid) == 0)
+
+
+@pytest.mark.parametrize("method", ["binned", "brute", "jax"])
+def test_rays_parallel_to_a_tilted_plane_miss_it(method):
+    """Rays lying in (or parallel to) a tilted plane miss it, as in mj_ray, even with no range
+    limit: float32 rounding of the rotated direction must not turn them into hits at t = 0
+    or at 1e8 m."""
+    xml = """<mujoco><worldbody><geom type="plane" size="0 0 1" pos=".3 -.2 .1"
+      euler="25 -40 70" contype="0" conaffinity="0"/></worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    frame = d.geom_xmat[0].reshape(3, 3)  # columns: the plane's x, y and normal
+    angle = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    dirs = np.cos(angle)[:, None] * frame[:, 0] + np.sin(angle)[:, None] * frame[:, 1]
+    mx, dx = mjx.put_model(m), mjx.put_data(m, d)
+    for height in (0.0, 0.5):
+        origin = d.geom_xpos[0] + height * frame[:, 2]
+        ref_d, ref_g = mj_ray_reference(m, d, origin, dirs, np.inf)
+        assert (ref_g == -1).all()
+        dist, gid = lidar.cast_rays(
+            mx, dx, jnp.asarray(origin, jnp.float32), jnp.asarray(dirs, jnp.float32), np.inf,
+            method=method,
+        )  # fmt: skip
+        np.testing.assert_array_equal(np.asarray(gid), ref_g, err_msg=f"height {height}")
+        np.testing.assert_array_equal(np.asarray(dist), ref_d)
 
 
 def test_unsupported_geoms_raise_unless_skipped():

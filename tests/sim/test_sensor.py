@@ -145,3 +145,36 @@ def test_mjlidar_scans_host_mujoco_states_like_scan():
     other = mujoco.MjData(mujoco.MjModel.from_xml_string(XML))  # one geom fewer
     with pytest.raises(ValueError, match=r"geom_xpos has shape \(3, 3\), the model has 4 geoms"):
         lidar(other, jax.random.key(0))
+
+
+def test_mjlidar_does_not_see_its_own_body():
+    """A site inside a robot's housing: MjLidar excludes the site's body by default (as
+    MuJoCo's rangefinder does); bodyexclude=-1 brings the housing back."""
+    from indoorbev_sim import patterns
+
+    xml = XML.replace(
+        '<site name="lidar" pos="0.5 0.2 1.0" euler="0 0 30"/>',
+        '<body name="robot" pos="0.5 0.2 1.0"><geom type="cylinder" size="0.1 0.1"/>'
+        '<site name="lidar" euler="0 0 30"/></body>',
+    )
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    housing = m.body("robot").geomadr[0]
+    pattern = patterns.GridPattern(90, 8)
+    cfg = sensor.SensorConfig(range_noise_std=0.0, dropout_prob=0.0, min_range=0.0)
+    own = np.asarray(sensor.MjLidar(m, "lidar", pattern, cfg)(d, jax.random.key(0)).geom_id)
+    seen = np.asarray(
+        sensor.MjLidar(m, "lidar", pattern, cfg, bodyexclude=-1)(d, jax.random.key(0)).geom_id
+    )
+    assert (seen == housing).all()  # every ray starts inside the housing
+    assert not (own == housing).any() and (own >= 0).any()
+    # The default is mj_ray's answer with the site's body excluded.
+    site = d.site_xpos[m.site("lidar").id]
+    dirs = np.asarray(pattern.frame(0).directions, np.float64) @ d.site_xmat[0].reshape(3, 3).T
+    out = np.zeros(1, np.int32)
+    ref = []
+    for v in dirs:
+        mujoco.mj_ray(m, d, site, v, None, 1, m.body("robot").id, out)
+        ref.append(out[0])
+    np.testing.assert_array_equal(own, ref)
