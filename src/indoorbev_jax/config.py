@@ -156,6 +156,15 @@ class DataConfig:
         _check_positive("data.max_objects", self.max_objects)
         if len(set(self.class_names)) != len(self.class_names):
             _fail("data.class_names", f"names must be unique, got {self.class_names!r}")
+        pairs = self.class_map
+        if isinstance(pairs, dict):  # {"Desk": "Table"}, as --set data.class_map=... gives it
+            pairs = tuple(pairs.items())
+        if isinstance(pairs, str) or not all(
+            isinstance(p, (tuple, list)) and len(p) == 2 and all(isinstance(n, str) for n in p)
+            for p in pairs
+        ):
+            _fail("data.class_map", f"expected (name, class) pairs or a dict, got {pairs!r}")
+        object.__setattr__(self, "class_map", tuple(tuple(p) for p in pairs))
         for src, dst in self.class_map:
             if dst not in self.class_names:
                 _fail("data.class_map", f"'{src}' maps to unknown class '{dst}'")

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from indoorbev_jax.config import CLASS_NAMES, Config, DataConfig
+from indoorbev_jax.config import CLASS_NAMES, Config, ConfigError, DataConfig, with_overrides
 from indoorbev_jax.data import kitti
 
 DATA = DataConfig()
@@ -85,6 +85,13 @@ GOOD = "Table 0.00 0 -10 0 0 0 0 1.0 1.0 1.0 0.0 0.0 2.0 0.0"
         (GOOD.replace("2.0", "abc"), r"l\.txt:2: non-numeric field"),
         (GOOD.replace("Table", "Sofabed"), r"l\.txt:2: unknown class 'Sofabed'"),
         (GOOD.replace("2.0", "nan"), r"l\.txt:2: non-finite"),
+        (GOOD + " nan", r"l\.txt:2: non-finite .* score"),
+        (GOOD.replace("0.00 0 -10", "0.00 7 -10"), r"l\.txt:2: occlusion must be 0, .* got 7$"),
+        (GOOD.replace("0.00 0 -10", "0.00 inf -10"), r"l\.txt:2: occlusion .* got inf"),
+        (GOOD.replace("0.00 0 -10", "0.00 1.7 -10"), r"l\.txt:2: occlusion .* got 1\.7"),
+        (GOOD.replace("0.00 0 -10", "1.50 0 -10"), r"l\.txt:2: truncation .* got 1\.50"),
+        (GOOD.replace("1.0 1.0 1.0", "-1.0 1.0 1.0"), r"l\.txt:2: dimensions h w l must be"),
+        (GOOD + " 0.9", r"l\.txt:2: some lines .* \(line 2 has one, line 1 has none\)"),
     ],
 )
 def test_bad_label_lines_name_file_and_line(tmp_path, line, message):
@@ -97,6 +104,12 @@ def test_unknown_class_mapped_in_config(tmp_path):
     (tmp_path / "l.txt").write_text(GOOD.replace("Table", "Desk") + "\n")
     data = DataConfig(class_map=(("Desk", "Table"),))
     assert kitti.read_labels(tmp_path / "l.txt", data).classes.tolist() == [0]
+    # The JSON object a --set override gives is the same map; a malformed one names the field.
+    cfg = with_overrides(Config.tiny(), ['data.class_map={"Desk": "Table"}'])
+    assert cfg.data.class_map == (("Desk", "Table"),)
+    assert Config.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ConfigError, match="data.class_map.*pairs or a dict"):
+        DataConfig(class_map=(("Desk", "Table", "x"),))
 
 
 def test_mask_round_trip_and_wrong_size(tmp_path):
@@ -119,3 +132,25 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
     with pytest.raises(Boom):
         kitti._atomic_write(tmp_path / "x.txt", write)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_dontcare_blank_lines_and_bom_are_not_objects(tmp_path):
+    """KITTI's DontCare regions and blank lines are skipped, a byte-order mark is not part of
+    the first name, and mask instance k is the k-th object line."""
+    chair = GOOD.replace("Table", "Chair")
+    dontcare = "DontCare -1 -1 -10 0 0 0 0 -1 -1 -1 -1000 -1000 -1000 -10"
+    text = "\ufeff" + GOOD + "\n\n" + dontcare + "\n" + chair + "\n"
+    (tmp_path / "l.txt").write_text(text, encoding="utf-8")
+    labels = kitti.read_labels(tmp_path / "l.txt", DATA)
+    assert labels.classes.tolist() == [CLASS_NAMES.index("Table"), CLASS_NAMES.index("Chair")]
+    (tmp_path / "bad.txt").write_bytes(b"Table \xff\xfe\n")
+    with pytest.raises(kitti.DatasetError, match=r"bad\.txt: not a UTF-8 text file"):
+        kitti.read_labels(tmp_path / "bad.txt", DATA)
+
+
+def test_predicted_sizes_may_be_negative(tmp_path):
+    """A scored line is a prediction: its regressed size is read as written (ground truth
+    must be positive, test above)."""
+    (tmp_path / "p.txt").write_text(GOOD.replace("1.0 1.0 1.0", "-0.5 1.0 1.0") + " 0.9\n")
+    labels = kitti.read_labels(tmp_path / "p.txt", DATA)
+    np.testing.assert_allclose(labels.dims, [[1.0, 1.0, -0.5]])

@@ -172,9 +172,10 @@ class KittiDataset:
             i for i, p in paths.items() if not (p["labels"].exists() and p["points"].exists())
         ]
         if missing:
+            listed_in = self.root / (f"{split}.txt" if split is not None else "label_2")
             raise kitti.DatasetError(
-                f"{self.root / f'{split}.txt'}: {len(missing)} frame id(s) have no velodyne/"
-                f"label_2 files, e.g. {missing[:5]}"
+                f"{listed_in}: {len(missing)} frame id(s) have no velodyne/label_2 files, "
+                f"e.g. {missing[:5]}"
             )
 
     def __len__(self) -> int:

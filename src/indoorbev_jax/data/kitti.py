@@ -6,7 +6,8 @@ Layout::
     <root>/velodyne/<id>.bin     float32 N x 4 (x, y, z, intensity), lidar frame
     <root>/label_2/<id>.txt      KITTI label_2 lines, 15 fields (+ score for predictions)
     <root>/mask_2/<id>.png       optional 16-bit instance ids, H x W, 0 = none,
-                                 id k + 1 = the object on line k of the label file
+                                 id k = the k-th object line of the label file
+                                 (blank lines and DontCare regions do not count)
 
 There is no camera, so labels use KITTI's camera convention through a fixed axis
 permutation of the lidar frame: x_cam = -y, y_cam = -z, z_cam = x. A label line is::
@@ -160,39 +161,63 @@ def write_labels(
     _atomic_write(Path(path), lambda p: p.write_text(text))
 
 
+def _label_error(source: str, lineno: int, what: str) -> DatasetError:
+    return DatasetError(f"{source}:{lineno}: {what}")
+
+
 def parse_label_lines(lines: list[str], data: DataConfig, source: str) -> ObjectLabels:
-    """Parses KITTI label_2 lines; ``source`` names the file in error messages."""
+    """Parses KITTI label_2 lines; ``source`` names the file in error messages.
+
+    Blank lines and KITTI's ``DontCare`` regions are not objects: instance k of a mask is the
+    k-th object line. Every other line must be a valid object, or the error names its line.
+    """
     rows, names, occl, scores = [], [], [], []
+    first_scored = first_unscored = None
     for lineno, line in enumerate(lines, start=1):
         fields = line.split()
-        if not fields:
+        if not fields or fields[0] == "DontCare":
             continue
         if len(fields) not in (15, 16):
-            raise DatasetError(
-                f"{source}:{lineno}: expected 15 fields (16 with a score), got {len(fields)}"
+            raise _label_error(
+                source, lineno, f"expected 15 fields (16 with a score), got {len(fields)}"
             )
         name = fields[0]
         try:
             cls = data.class_index(name)
         except KeyError:
-            raise DatasetError(
-                f"{source}:{lineno}: unknown class '{name}' (expected one of "
-                f"{list(data.class_names)} or a name mapped in data.class_map)"
-            ) from None
+            raise _label_error(
+                source, lineno, f"unknown class '{name}' (expected one of "
+                f"{list(data.class_names)} or a name mapped in data.class_map)",
+            ) from None  # fmt: skip
         try:
             values = [float(v) for v in fields[1:]]
-            occlusion = int(float(fields[2]))
         except ValueError as e:
-            raise DatasetError(f"{source}:{lineno}: non-numeric field ({e})") from None
-        if not all(math.isfinite(v) for v in values[7:14]):
-            raise DatasetError(f"{source}:{lineno}: non-finite dimensions, location or angle")
+            raise _label_error(source, lineno, f"non-numeric field ({e})") from None
+        truncation, occlusion = values[0], values[1]
+        if not 0.0 <= truncation <= 1.0:
+            raise _label_error(source, lineno, f"truncation must lie in [0, 1], got {fields[1]}")
+        if occlusion not in (0.0, 1.0, 2.0, 3.0):
+            raise _label_error(source, lineno, f"occlusion must be 0, 1, 2 or 3, got {fields[2]}")
+        if not all(math.isfinite(v) for v in values[7:]):
+            raise _label_error(source, lineno, "non-finite dimensions, location, angle or score")
+        if len(fields) == 15 and not all(v > 0 for v in values[7:10]):
+            # Ground truth only: a prediction's regressed size may come out <= 0.
+            raise _label_error(
+                source, lineno, f"dimensions h w l must be positive, got {' '.join(fields[8:11])}"
+            )
         names.append(cls)
-        occl.append(occlusion)
+        occl.append(int(occlusion))
         rows.append(values[7:14])
         if len(fields) == 16:
             scores.append(values[14])
-    if scores and len(scores) != len(rows):
-        raise DatasetError(f"{source}: some lines carry a score and some do not")
+            first_scored = first_scored or lineno
+        else:
+            first_unscored = first_unscored or lineno
+    if first_scored and first_unscored:
+        raise DatasetError(
+            f"{source}:{max(first_scored, first_unscored)}: some lines carry a score and some "
+            f"do not (line {first_scored} has one, line {first_unscored} has none)"
+        )
     if not rows:
         return ObjectLabels.empty()
     h, w, l, xc, yc, zc, rot_y = np.asarray(rows, np.float64).T  # noqa: E741
@@ -212,7 +237,11 @@ def parse_label_lines(lines: list[str], data: DataConfig, source: str) -> Object
 def read_labels(path: str | os.PathLike, data: DataConfig) -> ObjectLabels:
     """Reads a ``label_2/*.txt`` file. Errors name the file and line."""
     path = Path(path)
-    return parse_label_lines(path.read_text().splitlines(), data, str(path))
+    try:
+        text = path.read_text(encoding="utf-8-sig")  # a leading byte-order mark is not a name
+    except UnicodeDecodeError as e:
+        raise DatasetError(f"{path}: not a UTF-8 text file ({e})") from None
+    return parse_label_lines(text.splitlines(), data, str(path))
 
 
 # Masks -------------------------------------------------------------------------------------
