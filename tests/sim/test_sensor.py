@@ -17,6 +17,12 @@ XML = """<mujoco><default><geom contype="0" conaffinity="0"/></default><worldbod
 </worldbody></mujoco>"""
 
 
+def _edited_scene(old: str, new: str):
+    """(MjModel, MjData) of XML with ``old`` replaced by ``new``."""
+    m = mujoco.MjModel.from_xml_string(XML.replace(old, new))
+    return m, mujoco.MjData(m)
+
+
 # One jitted scan for all tests: eager calls would compile every small op separately.
 _scan = jax.jit(sensor.scan, static_argnames="config")
 
@@ -118,13 +124,11 @@ def test_mjlidar_scans_host_mujoco_states_like_scan():
     """MjLidar on a stepped MjData (a mocap body moving) equals scan on mjx.put_data."""
     from indoorbev_sim import patterns
 
-    xml = XML.replace(
+    m, d = _edited_scene(
         "</worldbody>",
         '<body name="cart" mocap="true" pos="2 1 0.5"><geom type="box" size="0.3 0.3 0.5"/>'
         "</body></worldbody>",
     )
-    m = mujoco.MjModel.from_xml_string(xml)
-    d = mujoco.MjData(m)
     pattern = patterns.GridPattern(90, 8)
     cfg = sensor.SensorConfig(range_noise_std=0.01, dropout_prob=0.1, max_range=20.0)
     lidar = sensor.MjLidar(m, "lidar", pattern, cfg)
@@ -152,13 +156,11 @@ def test_mjlidar_does_not_see_its_own_body():
     MuJoCo's rangefinder does); bodyexclude=-1 brings the housing back."""
     from indoorbev_sim import patterns
 
-    xml = XML.replace(
+    m, d = _edited_scene(
         '<site name="lidar" pos="0.5 0.2 1.0" euler="0 0 30"/>',
         '<body name="robot" pos="0.5 0.2 1.0"><geom type="cylinder" size="0.1 0.1"/>'
         '<site name="lidar" euler="0 0 30"/></body>',
     )
-    m = mujoco.MjModel.from_xml_string(xml)
-    d = mujoco.MjData(m)
     mujoco.mj_forward(m, d)
     housing = m.body("robot").geomadr[0]
     pattern = patterns.GridPattern(90, 8)
