@@ -71,9 +71,17 @@ def test_large_finite_costs_keep_their_order(scale):
         ref = _scipy_total(cost[i].astype(np.float64), valid[i])
         ours = _our_total(cost[i].astype(np.float64), valid[i], query_idx[i])
         np.testing.assert_allclose(ours, ref, rtol=1e-6, atol=abs(scale) * 1e-6)
-    # The 2x2 case the clipping got wrong: the diagonal costs twice the anti-diagonal.
+
+
+def test_large_costs_are_not_clipped_into_ties():
+    # The diagonal costs twice the anti-diagonal; clipped to COST_CAP both would tie.
     big = jnp.array([[[2e6, 1e6], [1e6, 2e6]]], jnp.float32)
     np.testing.assert_array_equal(np.asarray(_match(big, jnp.ones((1, 2), bool))[0]), [[1, 0]])
+
+
+def test_no_targets_gives_empty_indices():
+    query_idx, target_idx = _match(jnp.zeros((2, 5, 0)), jnp.zeros((2, 0), bool))
+    assert query_idx.shape == target_idx.shape == (2, 0)
 
 
 def test_clean_cost_scales_only_frames_past_the_bound():

@@ -55,11 +55,11 @@ def clean_cost(cost: jax.Array, valid: jax.Array | None = None) -> jax.Array:
     cost = cost.astype(jnp.float32)
     m = cost.shape[-1]
     finite = jnp.isfinite(cost)
-    if valid is not None:
-        finite_valid = finite & valid[..., None, :]
-    else:
-        finite_valid = finite
-    largest = jnp.max(jnp.where(finite_valid, jnp.abs(cost), 0.0), axis=(-2, -1), keepdims=True)
+    sets_scale = finite if valid is None else finite & valid[..., None, :]
+    # initial=0: a frame with no targets (M = 0) has nothing to scale.
+    largest = jnp.max(
+        jnp.where(sets_scale, jnp.abs(cost), 0.0), axis=(-2, -1), keepdims=True, initial=0.0
+    )
     bound = COST_CAP / (2 * (m + 1))
     # log2 rather than largest / bound: no overflow for costs near float32's max.
     exponent = jnp.ceil(jnp.log2(jnp.maximum(largest, bound)) - jnp.log2(bound))

@@ -214,10 +214,10 @@ def parse_label_lines(lines: list[str], data: DataConfig, source: str) -> Object
         else:
             first_unscored = first_unscored or lineno
     if first_scored and first_unscored:
-        raise DatasetError(
-            f"{source}:{max(first_scored, first_unscored)}: some lines carry a score and some "
-            f"do not (line {first_scored} has one, line {first_unscored} has none)"
-        )
+        raise _label_error(
+            source, max(first_scored, first_unscored), "some lines carry a score and some do "
+            f"not (line {first_scored} has one, line {first_unscored} has none)",
+        )  # fmt: skip
     if not rows:
         return ObjectLabels.empty()
     h, w, l, xc, yc, zc, rot_y = np.asarray(rows, np.float64).T  # noqa: E741
