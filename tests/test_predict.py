@@ -283,3 +283,226 @@ def test_predictor_with_views_maps_features_and_segments_back(model_file, tmp_pa
     assert len(lines) == summary["objects"] > 0
     with pytest.raises(ValueError, match=r"inference\.views.*'flip'"):
         P.predict(model_file, tmp_path / "scan.bin", tmp_path / "o2", views=("flip",))
+
+
+# Bags, resuming and bad input -------------------------------------------------------------
+
+
+def _cloud_bag(path, clouds, log_ns, stamp_ns, topic="/cloud"):
+    """A rosbag2 folder of float32 x, y, z, intensity PointCloud2, one message per cloud,
+    recorded at ``log_ns`` with header stamps ``stamp_ns``."""
+    from rosbags.rosbag2 import Writer
+
+    from indoorbev_jax.rosbag import POINTCLOUD2, cloud_msg
+
+    ts = typestore()
+    with Writer(path, version=8) as writer:
+        conn = writer.add_connection(topic, POINTCLOUD2, typestore=ts)
+        for cloud, log, stamp in zip(clouds, log_ns, stamp_ns, strict=True):
+            msg = cloud_msg(ts, cloud, stamp, "os")
+            writer.write(conn, log, ts.serialize_cdr(msg, POINTCLOUD2))
+
+
+def _scans(n, seed=5, points=400):
+    rng = np.random.default_rng(seed)
+    scans = rng.uniform(-3.0, 3.0, (n, points, 4)).astype(np.float32)
+    scans[..., 2:] = rng.uniform(0.0, 1.0, (n, points, 2))
+    return list(scans)
+
+
+def _bag_messages(bag, topic):
+    """[(record ns, header stamp ns, message)] of one topic."""
+    from rosbags.rosbag2 import Reader
+
+    ts = typestore()
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        out = []
+        for conn, log, raw in reader.messages(connections=conns):
+            msg = ts.deserialize_cdr(raw, conn.msgtype)
+            # A MarkerArray's stamp is its markers' (all the same); None when it has none.
+            hdr = msg.markers[0].header if hasattr(msg, "markers") and msg.markers else None
+            hdr = getattr(msg, "header", hdr)
+            stamp = None if hdr is None else hdr.stamp.sec * 10**9 + hdr.stamp.nanosec
+            out.append((log, stamp, msg))
+        return out
+
+
+def test_organized_cloud_with_padded_rows_reads_each_point_once():
+    rng = np.random.default_rng(6)
+    height, width, pad = 3, 5, 12
+    pts = rng.normal(size=(height, width, 4)).astype("<f4")
+    rows = np.full((height, width * 16 + pad), 0xEE, np.uint8)  # padding holds garbage
+    rows[:, : width * 16] = pts.view(np.uint8).reshape(height, -1)
+    ts = typestore()
+    msg = ts.types["sensor_msgs/msg/PointCloud2"](
+        header=ts.types["std_msgs/msg/Header"](
+            stamp=ts.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="l"),
+        height=height, width=width,
+        fields=[ts.types["sensor_msgs/msg/PointField"](name=n, offset=4 * i, datatype=7, count=1)
+                for i, n in enumerate("xyz")],
+        is_bigendian=False, point_step=16, row_step=width * 16 + pad,
+        data=rows.reshape(-1)[:-pad],  # the last row may end without its padding
+        is_dense=True,
+    )  # fmt: skip
+    got = pointcloud2_to_points(msg)
+    np.testing.assert_array_equal(got[:, :3], pts[..., :3].reshape(-1, 3))
+    msg.row_step = width * 16 - 1
+    with pytest.raises(BagError, match="row_step 79 is less than width 5 x point_step 16"):
+        pointcloud2_to_points(msg, "scan")
+    msg.row_step, msg.fields[2].offset = width * 16 + pad, 14
+    with pytest.raises(BagError, match=r"scan: field 'z' \(4 bytes at offset 14\) runs past"):
+        pointcloud2_to_points(msg, "scan")
+
+
+def test_livox_cdr_decoder_equals_rosbags(tmp_path):
+    from indoorbev_jax.rosbag import livox_custom_from_cdr, livox_custom_to_points
+
+    rng = np.random.default_rng(7)
+    for n in (0, 1, 257):
+        cloud = rng.uniform(-5, 5, (n, 4)).astype(np.float32)
+        cloud[:, 3] = rng.integers(0, 256, n)
+        _livox_bag(tmp_path / f"b{n}", [cloud])
+        raw = _first_raw(tmp_path / f"b{n}")
+        ts = typestore()
+        msg = ts.deserialize_cdr(raw, LIVOX_CUSTOM)
+        for data in (raw, ts.serialize_cdr(msg, LIVOX_CUSTOM, little_endian=False)):
+            stamp, frame, got = livox_custom_from_cdr(data)
+            assert (stamp, frame) == (10**8, "livox_frame")
+            np.testing.assert_array_equal(got, livox_custom_to_points(msg))
+            np.testing.assert_array_equal(got, cloud)
+    with pytest.raises(BagError, match=r"m@3: cannot read a Livox CustomMsg: .* 257 points"):
+        livox_custom_from_cdr(raw[:-30], "m@3")
+
+
+def test_corrupt_bag_names_the_frame_and_skips_it_when_asked(model_file, tmp_path, capsys):
+    import sqlite3
+
+    scans = _scans(3)
+    bag = tmp_path / "in"
+    _cloud_bag(bag, scans, [10**9, 2 * 10**9, 3 * 10**9], [5, 6, 7])
+    with sqlite3.connect(bag / "in.db3") as db:  # cut the second message short
+        where = ("where timestamp = ?", (2 * 10**9,))
+        (data,) = db.execute(f"select data from messages {where[0]}", where[1]).fetchone()
+        db.execute(f"update messages set data = ? {where[0]}", (data[:40], *where[1]))
+    with pytest.raises(BagError, match=r"in frame 000001 \(recorded at 2000000000 ns\): cannot "
+                       r"decode .*--skip-bad-frames skips it"):  # fmt: skip
+        P.predict(model_file, bag, tmp_path / "o", pictures=False, verbose=False)
+    args = ["predict", str(model_file), str(bag), "--out", str(tmp_path / "o"), "--no-pictures"]
+    assert cli_main([*args, "--skip-bad-frames"]) == 0
+    captured = capsys.readouterr()
+    assert "[2/3] 000001: skipped:" in captured.err
+    assert "1 unreadable frames skipped: 000001" in captured.out
+    assert sorted(p.name for p in (tmp_path / "o" / "label_2").iterdir()) == [
+        "000000.txt", "000002.txt"]  # fmt: skip
+    # A storage file that cannot be opened is named, without a traceback.
+    db3 = (bag / "in.db3").read_bytes()
+    (bag / "in.db3").write_bytes(db3[: len(db3) // 2])
+    assert cli_main(args) == 2
+    assert f"{bag}: not a readable ROS 2 bag" in capsys.readouterr().err
+
+
+def test_bag_out_keeps_stamps_and_never_replaces_other_folders(model_file, tmp_path):
+    scans = _scans(2)
+    bag = tmp_path / "in"
+    _cloud_bag(bag, scans, [10**9, 2 * 10**9], [123, 10**9 + 456])
+    out, pred_bag = tmp_path / "o", tmp_path / "pred"
+    run = dict(pictures=False, verbose=False)
+    P.predict(model_file, bag, out, bag_out=pred_bag, **run)
+    clouds = _bag_messages(pred_bag, "/points")
+    assert [(log, stamp) for log, stamp, _ in clouds] == [(10**9, 123), (2 * 10**9, 10**9 + 456)]
+    assert {m.header.frame_id for *_, m in clouds} == {"os"}
+    for (*_, m), scan in zip(clouds, scans, strict=True):
+        np.testing.assert_array_equal(pointcloud2_to_points(m), scan)
+    markers = _bag_messages(pred_bag, "/detections")
+    assert all(m.markers for *_, m in markers)  # thresholds at 0: each frame has detections
+    assert [(log, stamp) for log, stamp, _ in markers] == [(10**9, 123), (2 * 10**9, 10**9 + 456)]
+    # The bag's detections are the label files' (the same run again resumes, and rewrites it).
+    from indoorbev_jax.rosbag import markers_to_labels
+
+    P.predict(model_file, bag, out, bag_out=pred_bag, **run)
+    for k, (*_, m) in enumerate(_bag_messages(pred_bag, "/detections")):
+        want = kitti.read_labels(out / "label_2" / f"{k:06d}.txt", CFG.data)
+        got = markers_to_labels(m, CFG.data)
+        np.testing.assert_allclose(got.pos, want.pos, atol=1e-6)
+        np.testing.assert_allclose(got.scores, want.scores, atol=5e-4 + 1e-6)  # text: 3 decimals
+    # Folders that are not such a bag are left alone.
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    other = tmp_path / "other"
+    _cloud_bag(other, scans[:1], [1], [1])
+    for target, match in ((mine, "mine: exists and is not a bag written on topics"),
+                          (other, "other: exists and is not a bag .* topics are \\['/cloud'\\]"),
+                          (out, "would replace --out"), (bag, "would replace INPUT"),
+                          (tmp_path, "would replace INPUT")):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            P.predict(model_file, bag, out, bag_out=target, **run)
+    assert (mine / "notes.txt").read_text() == "keep me"
+    assert len(_bag_messages(bag, "/cloud")) == 2 and len(_bag_messages(other, "/cloud")) == 1
+
+
+def test_predict_resumes_and_refuses_another_runs_outputs(model_file, tmp_path, capsys):
+    data = tmp_path / "data"
+    for k, scan in enumerate(_scans(3)):
+        kitti.write_points(data / "velodyne" / f"{k:06d}.bin", scan)
+    out = tmp_path / "o"
+    first = P.predict(model_file, data, out)
+    printed = capsys.readouterr().out
+    assert "[1/3] 000000:" in printed and "[3/3] 000002:" in printed and "ETA 0:" in printed
+    files = {p.relative_to(out): p.read_bytes() for p in out.rglob("*.*")}
+    # A kill between frames: frame 1 lost its label, frame 2 its picture.
+    (out / "label_2" / "000001.txt").unlink()
+    (out / "pictures" / "000002.png").unlink()
+    again = P.predict(model_file, data, out, verbose=False)
+    assert again["resumed_frames"] == 1 and again["objects"] == first["objects"]
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*.*")} == files
+    assert not list(out.rglob("*.tmp"))
+    # Another run's settings, or label files of unknown origin, are not mixed in.
+    with pytest.raises(ValueError, match=r"another run \(views: \['identity'\] -> \['mirror_x'\]"):
+        P.predict(model_file, data, out, views=("mirror_x",), verbose=False)
+    stale = tmp_path / "stale"
+    kitti.write_labels(stale / "label_2" / "009999.txt", kitti.read_labels(
+        out / "label_2" / "000000.txt", CFG.data), CFG.data.class_names)  # fmt: skip
+    with pytest.raises(ValueError, match=r"stale already holds 1 label, mask or picture files"):
+        P.predict(model_file, data, stale, verbose=False)
+    with pytest.raises(ValueError, match=r"--out .*data is INPUT"):
+        P.predict(model_file, data, data, verbose=False, overwrite=True)
+    P.predict(model_file, data, stale, pictures=False, verbose=False, overwrite=True)
+    assert sorted(p.stem for p in (stale / "label_2").iterdir()) == ["000000", "000001", "000002"]
+
+
+def test_input_errors_name_the_path_and_empty_clouds_are_said(model_file, tmp_path, capsys):
+    with pytest.raises(FileNotFoundError, match=r"nowhere: no such file or folder"):
+        P.predict(model_file, tmp_path / "nowhere", tmp_path / "o", verbose=False)
+    kitti.write_points(tmp_path / "scan.bin", _scans(1)[0])
+    with pytest.raises(ValueError, match=r"scan\.bin: --topic /x applies to ROS 2 bag input"):
+        P.predict(model_file, tmp_path / "scan.bin", tmp_path / "o", topic="/x", verbose=False)
+    bag = tmp_path / "bag"
+    _cloud_bag(bag, _scans(1), [1], [1])
+    with pytest.raises(ValueError, match=r"bag\.db3: a bag's storage file; pass the bag folder"):
+        P.predict(model_file, bag / "bag.db3", tmp_path / "o", verbose=False)
+    with pytest.raises(BagError, match=r"no topic '/x'; topics: \['/cloud \(sensor_msgs/msg/Po"):
+        P.predict(model_file, bag, tmp_path / "o", topic="/x", verbose=False)
+    far = np.full((50, 4), 1e3, np.float32)
+    far[:10] = np.nan
+    kitti.write_points(tmp_path / "far.bin", far)
+    summary = P.predict(model_file, tmp_path / "far.bin", tmp_path / "o", pictures=False)
+    assert summary["empty_frames"] == ["far"]
+    printed = capsys.readouterr().out
+    assert "none of its 50 points is valid (10 non-finite, 40 outside the workspace x [" in printed
+
+
+def test_auto_intensity_stays_livox_once_seen(model_file):
+    config, params = P.load_model(model_file)
+    predictor = P.Predictor(config, params)
+    livox, dark = _scans(2)
+    livox[:, 3] = 200.0
+    dark[:, 3] = 0.5  # a Livox scan of dark surfaces: 0.5 of 255, not 50 % reflectivity
+    predictor.prepare(livox)
+    padded, valid, _ = predictor.prepare(dark)
+    assert predictor.last_intensity_factor == pytest.approx(1 / 150)
+    np.testing.assert_allclose(padded[valid, 3], 0.5 / 150, rtol=1e-6)
+    fresh = P.Predictor(config, params)
+    fresh.prepare(dark)
+    assert fresh.last_intensity_factor == 1.0

@@ -152,6 +152,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     pred.add_argument("--bag-out", default=None, help="also write a bag with the predictions")
     pred.add_argument("--no-pictures", action="store_true")
+    pred.add_argument(
+        "--skip-bad-frames",
+        action="store_true",
+        help="report and skip frames that cannot be read (default: stop, naming the frame)",
+    )
+    pred.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the label, mask and picture files of another run in --out (the same "
+        "command again resumes instead)",
+    )
     _add_intensity(pred)
     add_views_argument(pred, "the model file's")
     pred.set_defaults(func=run_predict)
@@ -225,6 +236,8 @@ def run_predict(args: argparse.Namespace) -> int:
             pictures=not args.no_pictures,
             intensity=args.intensity,
             views=args.views,
+            skip_bad_frames=args.skip_bad_frames,
+            overwrite=args.overwrite,
         )
     except (OSError, ValueError) as e:  # bad model file, input or bag (rosbag.BagError)
         print(f"indoorbev predict: error: {e}", file=sys.stderr)

@@ -15,9 +15,12 @@ optionally a bag with the input clouds and the predictions as MarkerArray.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import json
 import os
 import statistics
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -183,31 +186,77 @@ def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
     return config, jax.tree_util.tree_unflatten(treedef, leaves)
 
 
-def iter_frames(path: str | os.PathLike, topic: str | None = None) -> Iterator:
-    """Yields (frame id, points [N, 4], stamp ns or None, frame name) from INPUT."""
-    path = Path(path)
-    if path.is_file() and path.suffix == ".bin":
-        yield path.stem, kitti.read_points(path), None, "lidar"
-    elif (path / "velodyne").is_dir():
-        for bin_path in sorted((path / "velodyne").glob("*.bin")):
-            yield bin_path.stem, kitti.read_points(bin_path), None, "lidar"
-    elif (path / "metadata.yaml").exists():
-        from indoorbev_jax.rosbag import read_clouds
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    """One input scan: ``points`` float32 [N, 4], or ``error`` when it cannot be read."""
 
-        for k, (stamp, frame, points) in enumerate(read_clouds(path, topic)):
-            yield f"{k:06d}", points, stamp, frame
-    else:
-        raise ValueError(
-            f"{path}: expected a .bin file, a KITTI-style folder with velodyne/, or a "
-            f"ROS 2 bag folder with metadata.yaml"
-        )
+    frame_id: str  # output file stem: the .bin's stem, or the bag message's index
+    points: np.ndarray | None
+    log_ns: int | None = None  # a bag's record time
+    stamp_ns: int | None = None  # a bag message's header stamp
+    frame_name: str = "lidar"
+    error: Exception | None = None
+
+
+def _bin_frames(paths: list[Path]) -> Iterator[Frame]:
+    for path in paths:
+        try:
+            yield Frame(path.stem, kitti.read_points(path))
+        except (kitti.DatasetError, OSError) as e:
+            yield Frame(path.stem, None, error=e)
+
+
+def _bag_frames(path: Path, topic: str | None) -> Iterator[Frame]:
+    from indoorbev_jax.rosbag import iter_clouds
+
+    for c in iter_clouds(path, topic):
+        frame_id = f"{c.index:06d}"
+        yield Frame(frame_id, c.points, c.log_ns, c.stamp_ns, c.frame_id or "lidar", c.error)
+
+
+def open_input(path: str | os.PathLike, topic: str | None = None) -> tuple[int, Iterator[Frame]]:
+    """(number of frames, an iterator of ``Frame``) over INPUT: a ``.bin`` file, a
+    KITTI-style folder (``velodyne/*.bin``) or a ROS 2 bag folder. A frame that cannot be read
+    comes with its ``error`` set, so that a caller may skip it; a bad INPUT path raises."""
+    path = Path(path)
+    is_bag = path.is_dir() and (path / "metadata.yaml").exists()
+    if topic is not None and path.exists() and not is_bag:
+        raise ValueError(f"{path}: --topic {topic} applies to ROS 2 bag input only")
+    if path.is_file() and path.suffix == ".bin":
+        return 1, _bin_frames([path])
+    if (path / "velodyne").is_dir():
+        bins = sorted((path / "velodyne").glob("*.bin"))
+        return len(bins), _bin_frames(bins)
+    if is_bag:
+        from indoorbev_jax.rosbag import count_clouds
+
+        return count_clouds(path, topic), _bag_frames(path, topic)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file or folder")
+    if path.is_file() and path.suffix in (".db3", ".mcap"):
+        raise ValueError(f"{path}: a bag's storage file; pass the bag folder {path.parent}")
+    raise ValueError(
+        f"{path}: expected a .bin file, a KITTI-style folder with velodyne/, or a "
+        f"ROS 2 bag folder with metadata.yaml"
+    )
+
+
+def iter_frames(path: str | os.PathLike, topic: str | None = None) -> Iterator:
+    """Yields (frame id, points [N, 4], stamp ns or None, frame name) from INPUT; the first
+    frame that cannot be read raises (``open_input`` goes on past it)."""
+    for frame in open_input(path, topic)[1]:
+        if frame.error is not None:
+            raise frame.error
+        yield frame.frame_id, frame.points, frame.log_ns, frame.frame_name
 
 
 class Predictor:
     """A jitted model + panoptic inference for one frame at a time (static shapes).
 
     ``intensity`` gives the units of the clouds' intensity (``intensity_factor``); each
-    cloud's intensity is mapped onto the simulator's [0, 1] before the model sees it.
+    cloud's intensity is mapped onto the simulator's [0, 1] before the model sees it. With
+    "auto", the first cloud with an intensity above 1 switches the stream to Livox units for
+    good, so that a later dark scan (all values <= 1) is not read as [0, 1] reflectivity.
     """
 
     def __init__(self, config: Config, params: Any, intensity: str | float = "auto"):
@@ -217,6 +266,7 @@ class Predictor:
         self.intensity = intensity
         self.last_counts: dict[str, int] = {}
         self.last_intensity_factor = 1.0
+        self._auto_factor = 1.0  # "auto": Livox once a cloud has shown intensity above 1
         model = IndoorBEV(config)
         views = config.inference.views
 
@@ -244,7 +294,10 @@ class Predictor:
         (past ``data.max_points``, thinned evenly)). Also kept as ``last_counts``, and the
         intensity's factor as ``last_intensity_factor``."""
         cfg = self.config
-        self.last_intensity_factor = intensity_factor(self.intensity, points)
+        factor = intensity_factor(self.intensity, points)
+        if self.intensity == "auto":
+            self._auto_factor = factor = min(factor, self._auto_factor)
+        self.last_intensity_factor = factor
         points = normalize_intensity(points, self.last_intensity_factor)
         padded, valid, self.last_counts = pad_points(points, cfg.grid, cfg.data.max_points)
         return padded, valid, self.last_counts
@@ -301,6 +354,56 @@ def render_prediction(config: Config, points, valid, output, bev, labels, ids):
     )
 
 
+PREDICT_FORMAT = "indoorbev_jax-predict-v1"
+# What --out holds from a predict run, per frame; predict.json says which run wrote them.
+OUTPUT_DIRS = {"label_2": ".txt", "mask_2": ".png", "pictures": ".png"}
+
+
+def model_fingerprint(config: Config, params: Any) -> str:
+    """sha256 of the config and every parameter's bytes: the same model, the same hash."""
+    digest = hashlib.sha256(config.to_json().encode())
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        leaf = np.asarray(leaf)
+        digest.update(f"{jax.tree_util.keystr(path)}{leaf.dtype}{leaf.shape}".encode())
+        digest.update(np.ascontiguousarray(leaf).tobytes())
+    return digest.hexdigest()
+
+
+def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
+    """Checks that ``out`` holds nothing but this run's outputs (then they are resumed), or
+    clears the earlier outputs when ``overwrite``; writes ``predict.json``."""
+    manifest = out / "predict.json"
+    ours = [p for d, ext in OUTPUT_DIRS.items() for p in (out / d).glob(f"*{ext}")]
+    if manifest.exists():
+        try:
+            saved = json.loads(manifest.read_text())
+        except (OSError, ValueError) as e:
+            saved = {"unreadable": str(e)}
+        if saved == run:
+            return
+        if not overwrite:
+            diff = sorted(k for k in run.keys() | saved.keys() if run.get(k) != saved.get(k))
+            shown = ", ".join(f"{k}: {saved.get(k)!r} -> {run.get(k)!r}" for k in diff)
+            raise ValueError(
+                f"{out} holds the predictions of another run ({shown}); pass --overwrite to "
+                f"replace them, or choose another --out"
+            )
+    elif ours and not overwrite:
+        raise ValueError(
+            f"{out} already holds {len(ours)} label, mask or picture files that no predict run "
+            f"wrote (no predict.json); pass --overwrite to replace them, or choose another --out"
+        )
+    if overwrite:
+        for path in ours:
+            path.unlink()
+    kitti.atomic_write(manifest, lambda p: p.write_text(json.dumps(run, indent=1) + "\n"))
+
+
+def _eta(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
 def predict(
     model_path: str | os.PathLike,
     input_path: str | os.PathLike,
@@ -312,66 +415,149 @@ def predict(
     verbose: bool = True,
     intensity: str | float = "auto",
     views: tuple[str, ...] | None = None,
+    skip_bad_frames: bool = False,
+    overwrite: bool = False,
 ) -> dict:
     """Runs the model over INPUT and writes labels, masks, pictures (and a bag).
 
-    ``intensity``: the units of INPUT's intensity (``intensity_factor``; "auto" reads values
-    above 1 as Livox reflectivity 0-255). ``views``: test-time views (``config.VIEWS``;
-    None: the model file's ``inference.views``).
+    Every file is written atomically, a frame's label last, and ``out/predict.json`` names
+    the model, the input and the settings: the same command after a kill resumes, skipping
+    the frames whose outputs are there. ``out`` must be empty or hold the outputs of the same
+    run; ``overwrite`` clears another run's label, mask and picture files first.
+
+    Args:
+      intensity: the units of INPUT's intensity (``intensity_factor``; "auto" reads values
+        above 1 as Livox reflectivity 0-255).
+      views: test-time views (``config.VIEWS``; None: the model file's
+        ``inference.views``).
+      bag_out: also write the input clouds (with their header stamps) on ``/points`` and
+        the predictions (as in ``label_2``) on ``/detections``; an existing folder is only
+        replaced when it is such a bag (``rosbag.check_bag_target``).
+      skip_bad_frames: a frame that cannot be read is reported and skipped (else the
+        error names it and stops the run).
 
     Returns:
-      ``{"frames", "latency_ms": {"median", "p90", "max"}, "objects", "thinned_frames"}``;
-      latency is the jitted model + inference time per frame, the first (compiling) frame
-      excluded; ``thinned_frames`` counts the frames with more valid points than
-      ``data.max_points`` (each kept ``max_points``, evenly spread).
+      ``{"frames", "latency_ms": {"median", "p90", "max"}, "objects", "thinned_frames",
+      "resumed_frames", "bad_frames", "empty_frames"}``; latency is the jitted model +
+      inference time per frame, the first (compiling) frame excluded; ``thinned_frames``
+      counts the frames with more valid points than ``data.max_points`` (each kept
+      ``max_points``, evenly spread); ``bad_frames`` lists the ids of skipped frames,
+      ``empty_frames`` those with no valid point in the workspace.
     """
+    intensity_factor(intensity, np.zeros((0, 4), np.float32))  # bad units fail first
     config, params = load_model(model_path)
+    fingerprint = model_fingerprint(config, params)  # the model file's, before --views
     config = with_thresholds(config, views=views)
+    out, names = Path(out), config.data.class_names
+    total, frames_in = open_input(input_path, topic)
+    if out.resolve() == Path(input_path).resolve():
+        raise ValueError(f"--out {out} is INPUT: its label_2/ and mask_2/ would be replaced")
+    if bag_out is not None:
+        from indoorbev_jax.rosbag import check_bag_target
+
+        bag = Path(bag_out).resolve()
+        for other, what in ((Path(input_path).resolve(), "INPUT"), (out.resolve(), "--out")):
+            if bag == other or bag in other.parents:
+                raise ValueError(f"--bag-out {bag_out} would replace {what} {other}")
+        check_bag_target(bag_out, ("/points", "/detections"))
+    run = {
+        "format": PREDICT_FORMAT,
+        "model": fingerprint,
+        "input": str(Path(input_path).resolve()),
+        "topic": topic,
+        "intensity": intensity,
+        "views": list(config.inference.views),
+    }
+    _prepare_out(out, run, overwrite)
     predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity)
-    out = Path(out)
-    names = config.data.class_names
-    latencies, objects, frames, thinned = [], 0, 0, 0
-    factors_said = set()
-    bag_frames = []
-    for frame_id, points, stamp, frame_name in iter_frames(input_path, topic):
+    grid = config.grid
+    workspace = f"x {list(grid.x_range)}, y {list(grid.y_range)}, z {list(grid.z_range)} m"
+    summary = {"frames": 0, "objects": 0, "thinned_frames": 0, "resumed_frames": 0,
+               "bad_frames": [], "empty_frames": []}  # fmt: skip
+    latencies, compiled, factors_said = [], [], set()
+    say = functools.partial(print, flush=True) if verbose else (lambda *a, **k: None)
+    started = time.perf_counter()
+
+    def run_frames():
+        for position, frame in enumerate(frames_in, 1):
+            count = f"[{position}/{total}] {frame.frame_id}"
+            if frame.error is not None:
+                if not skip_bad_frames:
+                    raise type(frame.error)(
+                        f"{frame.error} (frame {frame.frame_id}; --skip-bad-frames skips it)"
+                    ) from None
+                summary["bad_frames"].append(frame.frame_id)
+                print(f"{count}: skipped: {frame.error}", file=sys.stderr, flush=True)
+                continue
+            label_path = out / "label_2" / f"{frame.frame_id}.txt"
+            mask_path = out / "mask_2" / f"{frame.frame_id}.png"
+            picture_path = out / "pictures" / f"{frame.frame_id}.png"
+            wanted = [label_path, mask_path] + ([picture_path] if pictures else [])
+            summary["frames"] += 1
+            if all(p.exists() for p in wanted):
+                summary["resumed_frames"] += 1
+            else:
+                line = predict_frame(frame, count, label_path, mask_path, picture_path)
+                say(line)
+            labels = kitti.read_labels(label_path, config.data)  # what the bag gets too
+            summary["objects"] += len(labels)
+            default_ns = position * 100_000_000  # 10 Hz for inputs without times
+            log_ns = frame.log_ns if frame.log_ns is not None else default_ns
+            yield log_ns, frame.frame_name, frame.points, labels, frame.stamp_ns
+
+    def predict_frame(frame, count, label_path, mask_path, picture_path) -> str:
         start = time.perf_counter()
-        padded, valid, final, output, bev = predictor(points)
+        padded, valid, _ = predictor.prepare(frame.points)
+        final, output, bev = predictor.infer(padded, valid)
         ms = 1e3 * (time.perf_counter() - start)
-        if frames:
+        if compiled:  # the first model call of this process compiles: not timed
             latencies.append(ms)
-        frames += 1
+        compiled.append(True)
         labels, ids = to_labels(final, output)
-        objects += len(labels)
-        kitti.write_mask(out / "mask_2" / f"{frame_id}.png", ids)
-        kitti.write_labels(out / "label_2" / f"{frame_id}.txt", labels, names)
+        kitti.write_mask(mask_path, ids)
         if pictures:
             pic = render_prediction(config, padded, valid, output, bev, labels, ids)
-            (out / "pictures").mkdir(parents=True, exist_ok=True)
-            pic.save(out / "pictures" / f"{frame_id}.png")
-        if bag_out is not None:
-            bag_frames.append((stamp, frame_name, points, labels))
-        dropped = predictor.last_counts["dropped_points"]
-        thinned += int(dropped > 0)
+            kitti.atomic_write(picture_path, lambda p: pic.save(p, format="PNG"))
+        kitti.write_labels(label_path, labels, names)  # last: marks the frame done
+        counts = predictor.last_counts
+        dropped = counts["dropped_points"]
+        summary["thinned_frames"] += int(dropped > 0)
         factor = predictor.last_intensity_factor
-        if verbose and factor != 1.0 and factor not in factors_said:
+        if factor != 1.0 and factor not in factors_said:
             factors_said.add(factor)
-            print(
-                f"{frame_id}: intensity scaled by {factor:.6g} and clipped to [0, 1], the "
+            say(
+                f"{frame.frame_id}: intensity scaled by {factor:.6g} and clipped to [0, 1], the "
                 f"simulator's reflectivity range ({intensity!r} units; --intensity sets them)"
             )
-        if verbose:
-            note = (
-                f"; {dropped} of {dropped + config.data.max_points} valid points left out "
-                f"(data.max_points={config.data.max_points}, the rest spread over the scan)"
-                if dropped
-                else ""
+        note = (
+            f"; {dropped} of {dropped + config.data.max_points} valid points left out "
+            f"(data.max_points={config.data.max_points}, the rest spread over the scan)"
+            if dropped
+            else ""
+        )
+        if not valid.any():
+            summary["empty_frames"].append(frame.frame_id)
+            note += (
+                f"; warning: none of its {len(frame.points)} points is valid "
+                f"({counts['nonfinite_points']} non-finite, {counts['outside_points']} outside "
+                f"the workspace {workspace}): check the cloud's frame and units"
             )
-            print(f"{frame_id}: {len(labels)} objects, {ms:.1f} ms{note}")
-    if frames == 0:
-        raise ValueError(f"{input_path}: no frames found")
+        done = summary["frames"] - summary["resumed_frames"]
+        left = total - (summary["frames"] + len(summary["bad_frames"]))
+        eta = (time.perf_counter() - started) / done * left
+        return f"{count}: {len(labels)} objects, {ms:.1f} ms{note} (ETA {_eta(eta)})"
+
     if bag_out is not None:
-        write_prediction_bag(bag_out, bag_frames, names)
-    summary = {"frames": frames, "objects": objects, "thinned_frames": thinned}
+        from indoorbev_jax.rosbag import write_bag
+
+        write_bag(bag_out, run_frames(), names, "/points", "/detections")
+    else:
+        for _ in run_frames():
+            pass
+    frames = summary["frames"]
+    if frames == 0:
+        bad = f" ({len(summary['bad_frames'])} unreadable)" if summary["bad_frames"] else ""
+        raise ValueError(f"{input_path}: no frames found{bad}")
     if latencies:
         lat = np.asarray(latencies)
         summary["latency_ms"] = {
@@ -379,24 +565,20 @@ def predict(
             "p90": float(np.percentile(lat, 90)),
             "max": float(lat.max()),
         }
-    if verbose:
-        lat = summary.get("latency_ms")
-        tail = f", median {lat['median']:.1f} ms/frame (first frame compiles)" if lat else ""
-        print(f"{frames} frames, {objects} objects written to {out}{tail}")
-        if thinned:
-            print(
-                f"{thinned} frames had more valid points than data.max_points="
-                f"{config.data.max_points}: each kept that many, evenly spread"
-            )
+    lat = summary.get("latency_ms")
+    tail = f", median {lat['median']:.1f} ms/frame (first frame compiles)" if lat else ""
+    say(f"{frames} frames, {summary['objects']} objects written to {out}{tail}")
+    if summary["resumed_frames"]:
+        say(f"{summary['resumed_frames']} frames were done by an earlier run and kept")
+    if summary["bad_frames"]:
+        bad = summary["bad_frames"]
+        say(f"{len(bad)} unreadable frames skipped: {', '.join(bad[:10])}")
+    if summary["empty_frames"]:
+        empty = summary["empty_frames"]
+        say(f"{len(empty)} frames had no valid point in the workspace: {', '.join(empty[:10])}")
+    if summary["thinned_frames"]:
+        say(
+            f"{summary['thinned_frames']} frames had more valid points than data.max_points="
+            f"{config.data.max_points}: each kept that many, evenly spread"
+        )
     return summary
-
-
-def write_prediction_bag(bag: str | os.PathLike, frames: list, names) -> None:
-    """Input clouds on ``/points`` and predictions on ``/detections`` (MarkerArray)."""
-    from indoorbev_jax.rosbag import write_bag
-
-    stamped = (
-        (stamp if stamp is not None else (k + 1) * 100_000_000, frame, points, labels)
-        for k, (stamp, frame, points, labels) in enumerate(frames)
-    )
-    write_bag(bag, stamped, names, "/points", "/detections")

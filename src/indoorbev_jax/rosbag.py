@@ -9,6 +9,7 @@ write.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import shutil
@@ -180,7 +181,8 @@ def pointcloud2_to_points(msg, source: str = "PointCloud2") -> np.ndarray:
     """float32 [N, 4] (x, y, z, intensity) from a PointCloud2 of any field layout.
 
     x, y and z are required; intensity is taken from a field named ``intensity`` (or
-    ``reflectivity``) when present, else 0. Any numeric datatype and either byte order.
+    ``reflectivity``) when present, else 0. Any numeric datatype, either byte order, and
+    organized clouds (height > 1) whose rows are padded (``row_step`` > width x point_step).
     """
     fields = {f.name: f for f in msg.fields}
     missing = [n for n in ("x", "y", "z") if n not in fields]
@@ -188,19 +190,38 @@ def pointcloud2_to_points(msg, source: str = "PointCloud2") -> np.ndarray:
         have = sorted(fields)
         raise BagError(f"{source}: PointCloud2 lacks field(s) {missing}; it has {have}")
     order = ">" if msg.is_bigendian else "<"
-    n = int(msg.width) * int(msg.height)
-    raw = np.asarray(msg.data, np.uint8)
-    if raw.size < n * msg.point_step:
+    width, height, step = int(msg.width), int(msg.height), int(msg.point_step)
+    row_bytes = width * step
+    if height > 0 and int(msg.row_step) < row_bytes:
         raise BagError(
-            f"{source}: data holds {raw.size} bytes, expected {n} points x {msg.point_step}"
+            f"{source}: row_step {msg.row_step} is less than width {width} x point_step {step}"
         )
-    rows = raw[: n * msg.point_step].reshape(n, msg.point_step)
+    n = width * height
+    raw = np.asarray(msg.data, np.uint8)
+    # The last row needs no padding after its points.
+    need = (height - 1) * int(msg.row_step) + row_bytes if n else 0
+    if raw.size < need:
+        raise BagError(
+            f"{source}: data holds {raw.size} bytes, expected {height} rows of {width} points x "
+            f"{step} bytes (row_step {msg.row_step}): {need} bytes"
+        )
+    if n == 0:
+        return np.zeros((0, 4), np.float32)
+    # Rows as [height, row_step], padding cut off, then one point per line.
+    padded = np.zeros(height * int(msg.row_step), np.uint8)
+    padded[:need] = raw[:need]
+    rows = padded.reshape(height, int(msg.row_step))[:, :row_bytes].reshape(n, step)
 
     def column(name):
         f = fields[name]
         if f.datatype not in _FIELD_TYPES:
             raise BagError(f"{source}: field '{name}' has unknown datatype {f.datatype}")
         dtype = np.dtype(order + _FIELD_TYPES[f.datatype])
+        if f.offset + dtype.itemsize > step:
+            raise BagError(
+                f"{source}: field '{name}' ({dtype.itemsize} bytes at offset {f.offset}) runs "
+                f"past point_step {step}"
+            )
         cols = rows[:, f.offset : f.offset + dtype.itemsize]
         return np.ascontiguousarray(cols).view(dtype).reshape(n).astype(np.float32)
 
@@ -220,78 +241,255 @@ def livox_custom_to_points(msg, source: str = "CustomMsg") -> np.ndarray:
     return out
 
 
-def read_clouds(
-    bag: str | os.PathLike, topic: str | None = None
-) -> Iterator[tuple[int, str, np.ndarray]]:
-    """Yields (timestamp ns, frame id, points [N, 4]) for each cloud message of a bag.
+# One CustomPoint in CDR: 19 bytes, each aligned to 4 (its first member is a uint32).
+_LIVOX_POINT_CDR = {"names": ["x", "y", "z", "reflectivity"], "offsets": [4, 8, 12, 16],
+                    "itemsize": 19}  # fmt: skip
+
+
+def _align(pos: int, size: int) -> int:
+    return pos + (-pos % size)
+
+
+def livox_custom_from_cdr(raw, source: str = "CustomMsg") -> tuple[int, str, np.ndarray]:
+    """(header stamp ns, frame id, float32 [N, 4] x, y, z, reflectivity) read straight from
+    a CustomMsg's CDR bytes: the same as ``deserialize_cdr`` + ``livox_custom_to_points``
+    without a Python object per point (``experiments/bench_bag_decode.py``: 0.04 ms
+    against 27 ms for a 20,000-point scan on a 2-core CPU)."""
+    import struct
+
+    buf = memoryview(bytes(raw) if not isinstance(raw, bytes | bytearray) else raw)
+    try:
+        if len(buf) < 4 or buf[1] not in (0, 1):
+            raise ValueError(f"not a CDR message (header {bytes(buf[:4])!r})")
+        order = "<" if buf[1] == 1 else ">"
+        body = buf[4:]  # CDR aligns relative to the end of the 4-byte encapsulation header
+        sec, nanosec, name_len = struct.unpack_from(order + "iII", body, 0)
+        frame = bytes(body[12 : 12 + name_len]).rstrip(b"\0").decode("utf-8")
+        pos = _align(12 + name_len, 8) + 8  # past timebase (uint64)
+        (point_num,) = struct.unpack_from(order + "I", body, pos)
+        pos += 8  # point_num, lidar_id, rsvd[3]
+        (count,) = struct.unpack_from(order + "I", body, pos)
+        pos += 4
+        if count and len(body) < pos + 20 * (count - 1) + 19:
+            raise ValueError(f"{len(body) + 4} bytes cannot hold {count} points")
+    except (ValueError, struct.error, UnicodeDecodeError) as e:
+        raise BagError(f"{source}: cannot read a Livox CustomMsg: {e}") from None
+    if point_num != count:
+        raise BagError(f"{source}: point_num {point_num} but {count} points")
+    fields = dict(_LIVOX_POINT_CDR, formats=[order + "f4"] * 3 + ["u1"])
+    points = np.ndarray((count,), np.dtype(fields), buffer=body, offset=pos, strides=(20,))
+    out = np.empty((count, 4), np.float32)
+    for k, name in enumerate(fields["names"]):
+        out[:, k] = points[name]
+    return sec * 10**9 + nanosec, frame, out
+
+
+@dataclasses.dataclass(frozen=True)
+class Cloud:
+    """One cloud message of a bag: ``points`` float32 [N, 4], or ``error`` (a ``BagError``
+    naming the bag, the frame and why) when the message cannot be read."""
+
+    index: int  # position on the topic, from 0: the frame id predict writes
+    log_ns: int  # when the bag recorded it
+    stamp_ns: int | None  # the message header's stamp
+    frame_id: str
+    points: np.ndarray | None
+    error: BagError | None = None
+
+
+def _cloud_topics(reader, bag: Path, topic: str | None) -> list:
+    """The connections of the chosen cloud topic (``read_clouds``' rules)."""
+    kinds = " or ".join(t.rsplit("/", 1)[-1] for t in CLOUD_TYPES)
+    every = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})
+    if topic is not None:
+        chosen = [c for c in reader.connections if c.topic == topic]
+        if not chosen:
+            raise BagError(f"{bag}: no topic '{topic}'; topics: {every}")
+        if chosen[0].msgtype not in CLOUD_TYPES:
+            raise BagError(
+                f"{bag}: topic '{topic}' is {chosen[0].msgtype}, not one of {CLOUD_TYPES}"
+            )
+        return chosen
+    clouds = [c for c in reader.connections if c.msgtype in CLOUD_TYPES]
+    names = sorted({c.topic for c in clouds})
+    if not names:
+        raise BagError(f"{bag}: no {kinds} topic; topics: {every}")
+    if len(names) > 1:
+        raise BagError(f"{bag}: {len(names)} {kinds} topics {names}; pick one with --topic")
+    return clouds
+
+
+def _open_reader(bag: Path):
+    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2.errors import ReaderError
+
+    try:
+        reader = Reader(bag)
+        reader.open()
+    except ReaderError as e:
+        raise BagError(f"{bag}: not a readable ROS 2 bag: {e}") from None
+    return reader
+
+
+def count_clouds(bag: str | os.PathLike, topic: str | None = None) -> int:
+    """How many messages ``iter_clouds`` yields (from the bag's index, without reading)."""
+    bag = Path(bag)
+    reader = _open_reader(bag)
+    try:
+        return sum(c.msgcount for c in _cloud_topics(reader, bag, topic))
+    finally:
+        reader.close()
+
+
+def _decode(ts, conn, raw, source: str) -> tuple[int | None, str, np.ndarray]:
+    if conn.msgtype == LIVOX_CUSTOM:
+        return livox_custom_from_cdr(raw, source)
+    msg = ts.deserialize_cdr(raw, conn.msgtype)
+    stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+    return stamp, msg.header.frame_id, pointcloud2_to_points(msg, source)
+
+
+def iter_clouds(bag: str | os.PathLike, topic: str | None = None) -> Iterator[Cloud]:
+    """Yields every cloud message of a bag's cloud topic as a ``Cloud``, in record order.
+
+    A message that cannot be decoded is yielded with its ``error`` set (and no points), so
+    that a caller may skip it and go on; a bag whose storage cannot be opened or read any
+    further raises ``BagError``, naming the bag and the last frame read.
 
     Args:
       bag: a rosbag2 folder (sqlite3 or MCAP storage) holding sensor_msgs/PointCloud2 or
         livox_ros_driver2/CustomMsg (intensity = Livox reflectivity 0-255).
       topic: topic name; None picks the only such topic (an error when several).
     """
-    from rosbags.rosbag2 import Reader
+    from rosbags.serde import SerdeError
 
     bag = Path(bag)
     ts = typestore()
-    kinds = " or ".join(t.rsplit("/", 1)[-1] for t in CLOUD_TYPES)
-    with Reader(bag) as reader:
-        clouds = [c for c in reader.connections if c.msgtype in CLOUD_TYPES]
-        if topic is not None:
-            chosen = [c for c in reader.connections if c.topic == topic]
-            if not chosen:
-                have = sorted({c.topic for c in reader.connections})
-                raise BagError(f"{bag}: no topic '{topic}'; topics: {have}")
-            if chosen[0].msgtype not in CLOUD_TYPES:
-                raise BagError(
-                    f"{bag}: topic '{topic}' is {chosen[0].msgtype}, not one of {CLOUD_TYPES}"
-                )
-        elif len({c.topic for c in clouds}) != 1:
-            names = sorted({c.topic for c in clouds})
-            raise BagError(f"{bag}: {len(names)} {kinds} topics {names}; pick one with --topic")
-        else:
-            chosen = clouds
-        for conn, stamp, raw in reader.messages(connections=chosen):
-            msg = ts.deserialize_cdr(raw, conn.msgtype)
-            source = f"{bag}@{stamp}"
-            if conn.msgtype == LIVOX_CUSTOM:
-                points = livox_custom_to_points(msg, source)
-            else:
-                points = pointcloud2_to_points(msg, source)
-            yield stamp, msg.header.frame_id, points
+    reader = _open_reader(bag)
+    try:
+        messages = reader.messages(connections=_cloud_topics(reader, bag, topic))
+        index = 0
+        while True:
+            try:
+                item = next(messages, None)
+            except Exception as e:  # noqa: BLE001 - rosbags, sqlite and mcap errors differ
+                raise BagError(f"{bag}: storage unreadable after {index} frames: {e}") from None
+            if item is None:
+                return
+            conn, log_ns, raw = item
+            source = f"{bag} frame {index:06d} (recorded at {log_ns} ns)"
+            try:
+                stamp, frame, points = _decode(ts, conn, raw, source)
+                yield Cloud(index, log_ns, stamp, frame, points)
+            except BagError as e:
+                yield Cloud(index, log_ns, None, "", None, e)
+            except (SerdeError, ValueError) as e:
+                error = BagError(f"{source}: cannot decode {conn.msgtype}: {e}")
+                yield Cloud(index, log_ns, None, "", None, error)
+            index += 1
+    finally:
+        reader.close()
+
+
+def read_clouds(
+    bag: str | os.PathLike, topic: str | None = None
+) -> Iterator[tuple[int, str, np.ndarray]]:
+    """Yields (timestamp ns, frame id, points [N, 4]) for each cloud message of a bag; the
+    first message that cannot be read raises its ``BagError`` (``iter_clouds`` goes on).
+
+    Args:
+      bag: a rosbag2 folder (sqlite3 or MCAP storage) holding sensor_msgs/PointCloud2 or
+        livox_ros_driver2/CustomMsg (intensity = Livox reflectivity 0-255).
+      topic: topic name; None picks the only such topic (an error when several).
+    """
+    for cloud in iter_clouds(bag, topic):
+        if cloud.error is not None:
+            raise cloud.error
+        yield cloud.log_ns, cloud.frame_id, cloud.points
+
+
+def _bag_files(bag: Path) -> set[str]:
+    """metadata.yaml and the storage files it lists (empty when it cannot be read)."""
+    from ruamel.yaml import YAML
+
+    try:
+        info = YAML(typ="safe").load((bag / "metadata.yaml").read_text())
+        paths = info["rosbag2_bagfile_information"]["relative_file_paths"]
+        return {"metadata.yaml"} | {Path(str(p)).name for p in paths}
+    except Exception:  # noqa: BLE001 - any unreadable metadata means "not ours"
+        return set()
+
+
+def check_bag_target(bag: str | os.PathLike, topics: Iterable[str]) -> None:
+    """Raises ``BagError`` unless ``write_bag`` may write ``bag``: a path that does not exist,
+    an empty folder, or a bag with exactly ``topics`` and nothing else in its folder (one
+    written before by the same command). Anything else (a file, a folder of other files, a
+    bag recorded on other topics) is never replaced."""
+    bag = Path(bag)
+    if not bag.exists():
+        return
+    if not bag.is_dir():
+        raise BagError(f"{bag}: exists and is a file; choose another bag folder")
+    present = {p.name for p in bag.iterdir()}
+    if not present:
+        return
+    why = f"{bag}: exists and is not a bag written on topics {sorted(topics)}"
+    if "metadata.yaml" not in present:
+        raise BagError(f"{why} (it holds {sorted(present)[:5]}); remove it or choose another")
+    listed = _bag_files(bag)
+    try:
+        reader = _open_reader(bag)
+    except BagError as e:
+        raise BagError(f"{why}: {e}; remove it or choose another folder") from None
+    try:
+        have = sorted({c.topic for c in reader.connections})
+    finally:
+        reader.close()
+    extra = sorted(present - listed - {p + s for p in listed for s in ("-wal", "-shm")})
+    if have != sorted(topics) or extra:
+        detail = f"its topics are {have}" if have != sorted(topics) else f"it also holds {extra}"
+        raise BagError(f"{why}: {detail}; remove it or choose another folder")
 
 
 def write_bag(
     bag: str | os.PathLike,
-    frames: Iterable[tuple[int, str, np.ndarray, kitti.ObjectLabels]],
+    frames: Iterable[tuple],
     class_names,
     points_topic: str,
     objects_topic: str,
-) -> None:
-    """Writes (stamp ns, frame id, points [N, 4], labels) frames as PointCloud2 on
-    ``points_topic`` and MarkerArray on ``objects_topic``.
+) -> int:
+    """Writes frames as PointCloud2 on ``points_topic`` and MarkerArray on ``objects_topic``;
+    returns how many.
 
-    The bag is written under a temporary folder and renamed into place, so an interrupted
-    write never leaves a bag under the final name.
+    Each frame is (record time ns, frame id, points [N, 4], labels), optionally followed by
+    the header stamp in ns (default: the record time). The bag is written under a temporary
+    folder and renamed into place, so an interrupted write never leaves a bag under the
+    final name; an existing ``bag`` is replaced only when ``check_bag_target`` allows it.
     """
     from rosbags.rosbag2 import Writer
 
     ts = typestore()
     bag = Path(bag)
+    check_bag_target(bag, (points_topic, objects_topic))
     # rosbags names the storage file after the bag folder: write <bag>.partial/<name>.
     partial = bag.with_name(bag.name + ".partial")
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
     tmp = partial / bag.name
+    count = 0
     with Writer(tmp, version=8) as writer:
         c_pts = writer.add_connection(points_topic, POINTCLOUD2, typestore=ts)
         c_obj = writer.add_connection(objects_topic, MARKER_ARRAY, typestore=ts)
-        for stamp, frame, points, labels in frames:
+        for log_ns, frame, points, labels, *header_ns in frames:
+            stamp = header_ns[0] if header_ns and header_ns[0] is not None else log_ns
             cloud = cloud_msg(ts, points, stamp, frame)
-            writer.write(c_pts, stamp, ts.serialize_cdr(cloud, POINTCLOUD2))
+            writer.write(c_pts, log_ns, ts.serialize_cdr(cloud, POINTCLOUD2))
             markers = markers_msg(ts, labels, class_names, stamp, frame)
-            writer.write(c_obj, stamp, ts.serialize_cdr(markers, MARKER_ARRAY))
+            writer.write(c_obj, log_ns, ts.serialize_cdr(markers, MARKER_ARRAY))
+            count += 1
+    check_bag_target(bag, (points_topic, objects_topic))  # nothing else appeared meanwhile
     if bag.exists():
         shutil.rmtree(bag)
     os.replace(tmp, bag)
     partial.rmdir()
+    return count

@@ -130,7 +130,7 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
         raise Boom
 
     with pytest.raises(Boom):
-        kitti._atomic_write(tmp_path / "x.txt", write)
+        kitti.atomic_write(tmp_path / "x.txt", write)
     assert list(tmp_path.iterdir()) == []
 
 

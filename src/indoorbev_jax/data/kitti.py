@@ -91,7 +91,9 @@ class ObjectLabels:
         return np.concatenate([self.pos[:, :2], self.dims[:, :2], self.yaw[:, None]], axis=1)
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    """Calls ``write(tmp)`` on a temporary file beside ``path``, then renames it into place,
+    so that ``path`` is either absent, the old file or the whole new one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -122,7 +124,7 @@ def write_points(path: str | os.PathLike, points: np.ndarray) -> None:
     points = np.asarray(points, np.float32)
     if points.ndim != 2 or points.shape[1] != 4:
         raise ValueError(f"points for {path}: expected shape [N, 4], got {points.shape}")
-    _atomic_write(Path(path), lambda p: points.tofile(p))
+    atomic_write(Path(path), lambda p: points.tofile(p))
 
 
 # Labels ------------------------------------------------------------------------------------
@@ -158,7 +160,7 @@ def write_labels(
     path: str | os.PathLike, labels: ObjectLabels, class_names: tuple[str, ...]
 ) -> None:
     text = "".join(line + "\n" for line in labels_to_lines(labels, class_names))
-    _atomic_write(Path(path), lambda p: p.write_text(text))
+    atomic_write(Path(path), lambda p: p.write_text(text))
 
 
 def _label_error(source: str, lineno: int, what: str) -> DatasetError:
@@ -271,7 +273,7 @@ def write_mask(path: str | os.PathLike, instance_ids: np.ndarray) -> None:
     def write(tmp: Path) -> None:
         image.save(tmp, format="PNG")
 
-    _atomic_write(Path(path), write)
+    atomic_write(Path(path), write)
 
 
 # Frames and splits -------------------------------------------------------------------------
@@ -312,7 +314,7 @@ def read_split(root: str | os.PathLike, split: str) -> list[str]:
 
 def write_split(root: str | os.PathLike, split: str, ids: list[str]) -> None:
     text = "".join(f"{i}\n" for i in ids)
-    _atomic_write(Path(root) / f"{split}.txt", lambda p: p.write_text(text))
+    atomic_write(Path(root) / f"{split}.txt", lambda p: p.write_text(text))
 
 
 def list_frames(root: str | os.PathLike) -> list[str]:
