@@ -49,7 +49,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         action="append",
         default=[],
         metavar="FIELD=VALUE",
-        help="override any config field, VALUE as JSON (repeatable), e.g. "
+        help="override any config field, VALUE checked against its type (repeatable), e.g. "
         "--set head.upsampler_skips=false --set augment.gt_sampling=4",
     )
     return p.parse_args(argv)

@@ -1,6 +1,7 @@
 """Config presets and validation messages that name the field."""
 
 import dataclasses
+import re
 
 import pytest
 
@@ -72,3 +73,48 @@ def test_with_overrides_parses_json_values_and_names_bad_items():
     ]:
         with pytest.raises(ConfigError, match=message):
             with_overrides(Config.small(), [item])
+
+
+def test_with_overrides_checks_each_value_against_the_field_type():
+    from indoorbev_jax.config import with_overrides
+
+    base = Config.tiny()
+    # Python's spelling of a bool is not JSON: it used to become the truthy string 'False'.
+    for raw, want in [("False", False), ("FALSE", False), ("0", False), ("true", True),
+                      ("True", True), ("1", True)]:  # fmt: skip
+        assert with_overrides(base, [f"train.augment={raw}"]).train.augment is want
+    cfg = with_overrides(
+        base,
+        [
+            "train.batch_size=3",
+            "train.seed=4.0",
+            "train.learning_rate=1",
+            "grid.x_range=[-5, 5]",
+            "data.mask_targets=box",
+            'data.class_map={"Desk": "Table"}',
+            "backbone.shifted=[false, true, 0, 1]",
+        ],
+    )
+    assert type(cfg.train.batch_size) is int and cfg.train.batch_size == 3
+    assert type(cfg.train.seed) is int and cfg.train.seed == 4
+    assert type(cfg.train.learning_rate) is float and cfg.train.learning_rate == 1.0
+    assert cfg.grid.x_range == (-5.0, 5.0) and all(type(v) is float for v in cfg.grid.x_range)
+    assert cfg.data.mask_targets == "box" and cfg.data.class_map == (("Desk", "Table"),)
+    assert cfg.backbone.shifted == (False, True, False, True)
+    for item, expected in [
+        ("train.augment=maybe", "bool"),
+        ("train.augment=2", "bool"),
+        ("train.batch_size=2.5", "int"),
+        ("train.batch_size=four", "int"),
+        ("train.learning_rate=fast", "float"),
+        ("train.learning_rate=true", "float"),
+        ("grid.x_range=5", r"tuple\[float, float\]"),
+        ("grid.x_range=[1, 2, 3]", r"tuple\[float, float\]"),
+        ("backbone.strides=[1, 2.5, 2, 2]", r"tuple\[int, \.\.\.\]"),
+    ]:
+        key, _, raw = item.partition("=")
+        message = f"config field '{key}': got '{re.escape(raw)}', expected {expected}"
+        with pytest.raises(ConfigError, match=message):
+            with_overrides(base, [item])
+    with pytest.raises(ConfigError, match="train has no field 'nope' .*augment, eval_batches"):
+        with_overrides(base, ["train.nope=1"])

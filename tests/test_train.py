@@ -5,6 +5,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -262,6 +263,169 @@ def test_config_mismatch_in_workdir_is_an_error(tmp_path):
         T.train_and_evaluate(CFG, tmp_path, data=str(tmp_path), progress=False)
 
 
+class _Stop(Exception):
+    """Raised by the first train step of ``quick_start``: the start's checks have run."""
+
+
+_INITS: dict = {}
+
+
+@pytest.fixture
+def quick_start(monkeypatch):
+    """``train_and_evaluate`` stops at its first step (raising ``_Stop``) and initialises
+    each (config, key) once, so the tests of a run's start stay quick. Returns the keys
+    each train step was called with."""
+    init_state, step_keys = T.init_state, []
+
+    def cached_init(config, key):
+        index = (config, np.asarray(jax.random.key_data(key)).tobytes())
+        if index not in _INITS:
+            _INITS[index] = init_state(config, key)
+        return _INITS[index]
+
+    def stop(state, batch, key, hyper):
+        step_keys.append(key)
+        raise _Stop
+
+    monkeypatch.setattr(T, "init_state", cached_init)
+    monkeypatch.setattr(T, "jit_train_step", lambda *args, **kwargs: stop)
+    return step_keys
+
+
+class _FakeSim:
+    """Stands in for ``SimSource`` and records the key it was given."""
+
+    keys: dict = {}
+
+    def __init__(self, config, key, split="train"):
+        _FakeSim.keys[split] = key
+
+    def __call__(self, step):
+        return None
+
+
+def test_metrics_log_drops_a_torn_last_line_only(tmp_path, caplog):
+    path = tmp_path / "metrics.jsonl"
+    good = ['{"step": 5, "kind": "train", "loss": 2.0}', '{"step": 10, "kind": "train"}']
+    path.write_text("\n".join(good) + '\n\n{"step": 15, "kind": "tr')  # killed mid-write
+    with caplog.at_level("WARNING"):
+        T.MetricsLog(tmp_path, resume_step=10).close()
+    assert path.read_text() == "".join(line + "\n" for line in good)
+    assert f"{path}: line 4 is cut off" in caplog.text
+    assert not list(tmp_path.glob("*.tmp"))  # rewritten through a temporary file
+    # The resumed run appends to the repaired log.
+    log = T.MetricsLog(tmp_path, resume_step=10)
+    log.write(15, "train", {"loss": 1.0})
+    log.close()
+    assert [json.loads(line)["step"] for line in path.read_text().splitlines()] == [5, 10, 15]
+    # A bad line with lines after it is corruption, not a torn write.
+    path.write_text(good[0] + '\n{"step": 7, "ki\n' + good[1] + "\n")
+    with pytest.raises(ValueError, match=f"{re.escape(str(path))}: line 2 is not a JSON object"):
+        T.MetricsLog(tmp_path, resume_step=10)
+
+
+def test_refused_start_leaves_no_config_json(data, tmp_path, quick_start):
+    workdir = tmp_path / "run"
+    big = dataclasses.replace(CFG, train=dataclasses.replace(CFG.train, batch_size=16))
+    with pytest.raises(ValueError, match="fewer than train.batch_size=16"):
+        T.train_and_evaluate(big, workdir, data=str(data), progress=False)
+    assert not (workdir / "config.json").exists() and not (workdir / "run.json").exists()
+    with pytest.raises(_Stop):  # the corrected command starts
+        T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
+    assert Config.from_dict(json.loads((workdir / "config.json").read_text())) == CFG
+
+
+def test_resume_refuses_another_data_source(data, tmp_path, quick_start, monkeypatch):
+    monkeypatch.setattr(T, "SimSource", _FakeSim)
+    workdir = tmp_path / "run"
+    with pytest.raises(_Stop):
+        T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
+    folder = str(Path(data).resolve())
+    assert json.loads((workdir / "run.json").read_text()) == {"data": folder}
+    with pytest.raises(ValueError) as refused:
+        T.train_and_evaluate(CFG, workdir, data=None, progress=False)
+    assert str(refused.value) == (
+        f"{workdir / 'run.json'}: the run trained on {folder}, this command gives the simulator "
+        "(if the same data moved, edit the data field of run.json)"
+    )
+    other = tmp_path / "other"
+    write_synthetic_dataset(other, frames=8, seed=1)
+    with pytest.raises(ValueError, match=f"trained on {re.escape(folder)}, .* gives {other}"):
+        T.train_and_evaluate(CFG, workdir, data=str(other), progress=False)
+    monkeypatch.chdir(Path(data).parent)  # the same folder spelled another way resumes
+    with pytest.raises(_Stop):
+        T.train_and_evaluate(CFG, workdir, data=f"./{Path(data).name}/", progress=False)
+
+
+def test_resume_names_changed_fields_and_allows_schedule_only_ones(
+    data, tmp_path, quick_start, caplog
+):
+    with pytest.raises(_Stop):
+        T.train_and_evaluate(CFG, tmp_path, data=str(data), progress=False)
+    t = CFG.train
+    sched = dataclasses.replace(
+        CFG,
+        train=dataclasses.replace(
+            t, eval_every=5, log_every=1, checkpoint_every=2, keep_checkpoints=4
+        ),
+    )
+    with caplog.at_level("INFO", logger="indoorbev_jax.train"), pytest.raises(_Stop):
+        T.train_and_evaluate(sched, tmp_path, data=str(data), progress=False)
+    for line in ("train.eval_every: 10 -> 5", "train.log_every: 5 -> 1",
+                 "train.checkpoint_every: 5 -> 2", "train.keep_checkpoints: 2 -> 4"):  # fmt: skip
+        assert line in caplog.text
+    assert Config.from_dict(json.loads((tmp_path / "config.json").read_text())) == sched
+    changed = dataclasses.replace(
+        sched,
+        train=dataclasses.replace(sched.train, learning_rate=2e-3, total_steps=30, eval_every=3),
+        loss=dataclasses.replace(CFG.loss, dice_weight=1.0),
+    )
+    with pytest.raises(ValueError) as refused:
+        T.train_and_evaluate(changed, tmp_path, data=str(data), progress=False)
+    lines = str(refused.value).splitlines()
+    assert lines[0].startswith(f"{tmp_path / 'config.json'}: the workdir holds a run with")
+    assert lines[1:-1] == [  # each refused field, and only those
+        "  loss.dice_weight: 5.0 -> 1.0",
+        "  train.learning_rate: 0.001 -> 0.002",
+        "  train.total_steps: 20 -> 30",
+    ]
+    assert Config.from_dict(json.loads((tmp_path / "config.json").read_text())) == sched
+
+
+def test_each_use_of_the_run_key_has_its_own_stream(tmp_path, quick_start, monkeypatch):
+    """Model init, training data, validation data and the train steps' keys are four
+    different streams of key(train.seed), in a run and in a sweep alike."""
+    from indoorbev_jax import sweep
+
+    monkeypatch.setattr(T, "SimSource", _FakeSim)
+    inits = []
+    cached_init = T.init_state
+    monkeypatch.setattr(T, "init_state", lambda c, key: inits.append(key) or cached_init(c, key))
+    with pytest.raises(_Stop):
+        T.train_and_evaluate(CFG, tmp_path / "run", progress=False)
+
+    def fake_step(states, batch, key, hypers):
+        quick_start.append(key)
+        raise _Stop
+
+    monkeypatch.setattr(sweep, "init_sweep", lambda c, k, key: inits.append(key))
+    monkeypatch.setattr(sweep, "make_sweep_step", lambda c: fake_step)
+    runs = [dict(_FakeSim.keys, init=inits[0], steps=quick_start[0])]
+    with pytest.raises(_Stop):
+        sweep.run_sweep(CFG, tmp_path / "sweep", stack_hypers(CFG, [1e-3], {}))
+    runs.append(dict(_FakeSim.keys, init=inits[1], steps=quick_start[1]))
+    root = jax.random.key(CFG.train.seed)
+    for keys in runs:
+        data = {name: np.asarray(jax.random.key_data(k)) for name, k in keys.items()}
+        assert sorted(data) == ["init", "steps", "train", "val"]
+        distinct = {v.tobytes() for v in data.values()}
+        assert len(distinct) == 4, {name: v.tolist() for name, v in data.items()}
+        # experiments/eval_sim.py keeps its frames clear of these two streams.
+        for name, n in (("train", 0), ("val", 1)):
+            want = jax.random.key_data(jax.random.fold_in(root, n))
+            np.testing.assert_array_equal(data[name], want)
+
+
 def test_box_targets_are_the_rasterised_labelled_boxes(batch):
     from indoorbev_jax.data.rasterize import rasterize_boxes
 
@@ -359,3 +523,25 @@ def _get(tree, path):
     for k in path[:-1]:
         tree = tree[k.key]
     return tree
+
+
+def test_shard_batch_keeps_device_arrays_off_the_host(monkeypatch):
+    """A simulated batch (jax arrays) is placed device to device; numpy data still works.
+    On a CPU host and device share memory, so the round trip is caught at numpy."""
+
+    class NoDeviceToHost:
+        def __getattr__(self, name):
+            return getattr(np, name)
+
+        @staticmethod
+        def asarray(x, *args, **kwargs):
+            assert not isinstance(x, jax.Array), "a device array went through the host"
+            return np.asarray(x, *args, **kwargs)
+
+    monkeypatch.setattr(T, "np", NoDeviceToHost())
+    x = jnp.arange(8.0).reshape(4, 2)
+    host = np.arange(6, dtype=np.int32).reshape(2, 3)
+    out = T.shard_batch({"sim": x, "disk": host}, T.data_mesh())
+    assert out["sim"].sharding.spec == jax.sharding.PartitionSpec("data")
+    np.testing.assert_array_equal(out["sim"], x)
+    np.testing.assert_array_equal(out["disk"], host)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import typing
 from typing import Any
 
 CLASS_NAMES: tuple[str, ...] = (
@@ -685,11 +686,76 @@ def _to_tuple(value):
     return tuple(_to_tuple(v) if isinstance(v, list) else v for v in value)
 
 
+def config_diff(a: Config, b: Config) -> dict[str, tuple[Any, Any]]:
+    """The fields where ``a`` and ``b`` differ, as ``{"section.field": (a's, b's)}``."""
+    flat_a, flat_b = _flatten(a.to_dict()), _flatten(b.to_dict())
+    return {k: (flat_a[k], flat_b[k]) for k in flat_a if flat_a[k] != flat_b[k]}
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for name, value in d.items():
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{name}."))
+        else:
+            out[prefix + name] = value
+    return out
+
+
+_TRUE, _FALSE = ("true", "1"), ("false", "0")
+
+
+def _describe(hint) -> str:
+    if hint is bool:
+        return "bool (true, false, 1 or 0)"
+    if isinstance(hint, type):
+        return hint.__name__
+    if typing.get_origin(typing.get_args(hint)[0]) is tuple:
+        return f"{hint} as a JSON list of pairs or a JSON object"
+    return f"{hint} as a JSON list"
+
+
+def _as_type(value: Any, hint) -> Any:
+    """``value`` (decoded JSON, or the raw text where it is not JSON) as a value of the
+    annotation ``hint``; raises ``TypeError`` when it is not one."""
+    if hint is bool:
+        # Python's spelling (True) is not JSON, and the string 'False' would be truthy.
+        text = str(value).lower() if isinstance(value, bool | int | str) else None
+        if text in _TRUE + _FALSE:
+            return text in _TRUE
+    elif hint is int:
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+    elif hint is float:
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+    elif hint is str:
+        if isinstance(value, str):
+            return value
+    elif typing.get_origin(hint) is tuple:
+        args = typing.get_args(hint)
+        if isinstance(value, dict) and typing.get_origin(args[0]) is tuple:
+            value = list(value.items())  # {"Desk": "Table"} for (name, class) pairs
+        if isinstance(value, list | tuple):
+            types = [args[0]] * len(value) if args[-1] is Ellipsis else list(args)
+            if len(types) == len(value):
+                return tuple(_as_type(v, h) for v, h in zip(value, types, strict=True))
+    else:
+        raise NotImplementedError(f"--set cannot parse fields of type {hint}")
+    raise TypeError(value)
+
+
 def with_overrides(config: Config, items: list[str] | tuple[str, ...]) -> Config:
-    """``config`` with ``SECTION.FIELD=VALUE`` overrides, VALUE parsed as JSON (else taken as
-    a string), as the experiment scripts' ``--set`` passes them::
+    """``config`` with ``SECTION.FIELD=VALUE`` overrides, as the experiment scripts' ``--set``
+    passes them::
 
         cfg = with_overrides(Config.small(), ["head.upsampler_skips=false", "data.max_objects=20"])
+
+    VALUE is checked against the field's annotation: a bool takes true/false/1/0 (any case),
+    an int an integral number, a float any number, a str the text as given (or a quoted JSON
+    string), a tuple a JSON list of such values (a JSON object for ``data.class_map``).
 
     Raises:
       ConfigError: naming the item, for a malformed item, an unknown field or a bad value.
@@ -699,14 +765,26 @@ def with_overrides(config: Config, items: list[str] | tuple[str, ...]) -> Config
         path, sep, raw = item.partition("=")
         parts = path.split(".")
         if not sep or len(parts) != 2 or not isinstance(d.get(parts[0]), dict):
-            raise ConfigError(f"{item!r}: expected SECTION.FIELD=VALUE, e.g. head.remat=true")
-        if parts[1] not in d[parts[0]]:
-            raise ConfigError(f"{item!r}: {parts[0]} has no field '{parts[1]}'")
+            sections = [k for k, v in d.items() if isinstance(v, dict)]
+            raise ConfigError(
+                f"{item!r}: expected SECTION.FIELD=VALUE, e.g. head.remat=true "
+                f"(sections: {', '.join(sections)})"
+            )
+        section, name = parts
+        if name not in d[section]:
+            raise ConfigError(
+                f"{item!r}: {section} has no field '{name}' (fields: {', '.join(d[section])})"
+            )
+        hint = typing.get_type_hints(type(getattr(config, section)))[name]
         try:
-            d[parts[0]][parts[1]] = json.loads(raw)
+            value = json.loads(raw)
         except json.JSONDecodeError:
-            d[parts[0]][parts[1]] = raw
-    try:
-        return Config.from_dict(d)
-    except TypeError as e:  # e.g. a number where a tuple is expected
-        raise ConfigError(f"{list(items)}: {e}") from None
+            value = raw
+        if hint is str and not isinstance(value, str):
+            value = raw  # text that happens to be JSON (a number, null) is still text
+        try:
+            d[section][name] = _as_type(value, hint)
+        except TypeError:
+            msg = f"got {raw!r}, expected {_describe(hint)}"
+            raise ConfigError(f"config field '{path}': {msg}") from None
+    return Config.from_dict(d)

@@ -18,6 +18,8 @@ from tqdm import tqdm
 
 from indoorbev_jax.config import Config
 from indoorbev_jax.train import (
+    KEY_INIT,
+    KEY_STEPS,
     Hyper,
     TrainState,
     init_state,
@@ -60,13 +62,14 @@ def run_sweep(config: Config, workdir, hypers: Hyper, data=None) -> TrainState:
     t = config.train
     k = int(hypers.learning_rate.shape[0])
     key = jax.random.key(t.seed)
-    states = init_sweep(config, k, jax.random.fold_in(key, 0))
+    states = init_sweep(config, k, jax.random.fold_in(key, KEY_INIT))
     step = make_sweep_step(config)
     source, _ = make_sources(config, data, t.seed, skip_bad=False)
+    step_key = jax.random.fold_in(key, KEY_STEPS)
     log = (workdir / "sweep.jsonl").open("w")
     start = time.perf_counter()
     for s, batch in tqdm(prefetch(source, 0, t.total_steps), total=t.total_steps):
-        states, metrics = step(states, batch, jax.random.fold_in(key, 1), hypers)
+        states, metrics = step(states, batch, step_key, hypers)
         if (s + 1) % t.log_every == 0 or s + 1 == t.total_steps:
             record = {"step": s + 1, "loss": np.asarray(metrics["loss"]).tolist()}
             log.write(json.dumps(record) + "\n")

@@ -1,9 +1,10 @@
 """Training: one jitted step (augment -> forward -> match -> loss -> update), exact resume.
 
 ``train_and_evaluate(config, workdir)`` is what ``experiments/train.py`` runs. The run
-directory holds ``config.json``, ``metrics.jsonl`` (one JSON object a line), TensorBoard
-event files under ``tb/``, orbax checkpoints under ``checkpoints/`` (the latest
-``train.keep_checkpoints``) and ``best/`` (the best by validation ``metric``).
+directory holds ``config.json``, ``run.json`` (the data source), ``metrics.jsonl`` (one JSON
+object a line), TensorBoard event files under ``tb/``, orbax checkpoints under
+``checkpoints/`` (the latest ``train.keep_checkpoints``) and ``best/`` (the best by
+validation ``metric``).
 
 Exact resume: the data of step s and every random key of step s are pure functions of
 (seed, s), and the state is restored bit for bit, so a run killed at any point and
@@ -37,7 +38,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from indoorbev_jax.augment import ObjectDatabase, augment_batch, build_object_database
-from indoorbev_jax.config import Config
+from indoorbev_jax.config import Config, config_diff
 from indoorbev_jax.data.rasterize import rasterize_boxes
 from indoorbev_jax.losses import seed_loss, set_loss
 from indoorbev_jax.models import IndoorBEV
@@ -45,6 +46,19 @@ from indoorbev_jax.types import Batch
 from indoorbev_jax.xla_flags import train_compiler_options
 
 log = logging.getLogger("indoorbev_jax.train")
+
+# What each use of the run's root key ``key(train.seed)`` folds in: one constant per use, so
+# no two draw the same numbers. The data streams keep 0 and 1, which
+# ``experiments/eval_sim.py`` keeps its test frames clear of.
+KEY_TRAIN_DATA, KEY_VAL_DATA, KEY_INIT, KEY_STEPS = 0, 1, 2, 3
+
+# Fields a resumed run may change: they set when to log, evaluate and checkpoint and how many
+# checkpoints to keep, never what the parameters become. Not ``train.total_steps`` (the
+# cosine schedule ends at it) nor ``train.eval_batches`` or ``inference.*`` (they change the
+# validation scores that rank ``best/``).
+RESUME_MAY_CHANGE = frozenset(
+    {"train.log_every", "train.eval_every", "train.checkpoint_every", "train.keep_checkpoints"}
+)
 
 
 @struct.dataclass
@@ -324,9 +338,14 @@ def shard_batch(batch: Batch, mesh: Mesh) -> Batch:
     ``jax.distributed.initialize()``); with one process that is the whole batch.
     """
     sharding = NamedSharding(mesh, PartitionSpec("data"))
-    return jax.tree.map(
-        lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), batch
-    )
+
+    def place(x):
+        # A simulated batch is already on the device: move it there, not through the host.
+        if isinstance(x, jax.Array) and jax.process_count() == 1:
+            return jax.device_put(x, sharding)
+        return jax.make_array_from_process_local_data(sharding, np.asarray(x))
+
+    return jax.tree.map(place, batch)
 
 
 def replicate(tree, mesh: Mesh):
@@ -495,22 +514,40 @@ class Checkpoints:
 
 
 class MetricsLog:
-    """``metrics.jsonl`` plus TensorBoard; on resume, lines past the restored step go."""
+    """``metrics.jsonl`` plus TensorBoard; on resume, lines past the restored step go.
+
+    A last line that is not a JSON object (a write cut off by a kill) is dropped with a
+    warning; such a line anywhere else is corruption and raises ``ValueError`` naming it.
+    """
 
     def __init__(self, workdir: Path, resume_step: int):
         self.path = Path(workdir) / "metrics.jsonl"
         if self.path.exists():
-            kept = [
-                line
-                for line in self.path.read_text().splitlines()
-                if line.strip() and json.loads(line).get("step", 0) <= resume_step
-            ]
-            tmp = self.path.with_suffix(".tmp")
-            tmp.write_text("".join(line + "\n" for line in kept))
-            os.replace(tmp, self.path)
+            kept = [line for line, r in self._records() if r.get("step", 0) <= resume_step]
+            _write_atomic(self.path, "".join(line + "\n" for line in kept))
         from tensorboardX import SummaryWriter
 
         self.tb = SummaryWriter(str(Path(workdir) / "tb"), purge_step=resume_step + 1)
+
+    def _records(self) -> list[tuple[str, dict]]:
+        lines = [
+            (n, line)
+            for n, line in enumerate(self.path.read_text(errors="replace").splitlines(), 1)
+            if line.strip()
+        ]
+        records = []
+        for k, (n, line) in enumerate(lines):
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:
+                record = None
+            if isinstance(record, dict):
+                records.append((line, record))
+            elif k < len(lines) - 1:
+                raise ValueError(f"{self.path}: line {n} is not a JSON object: {line[:80]!r}")
+            else:
+                log.warning("%s: line %d is cut off (an interrupted write); dropped", self.path, n)
+        return records
 
     def write(self, step: int, kind: str, values: dict) -> None:
         # Undefined metrics (NaN) are written as null: strict JSON.
@@ -574,8 +611,8 @@ def make_sources(config: Config, data: str | None, seed: int, skip_bad: bool):
     t = config.train
     if data is None:
         key = jax.random.key(seed)
-        train = SimSource(config, jax.random.fold_in(key, 0))
-        val_source = SimSource(config, jax.random.fold_in(key, 1), "val")
+        train = SimSource(config, jax.random.fold_in(key, KEY_TRAIN_DATA))
+        val_source = SimSource(config, jax.random.fold_in(key, KEY_VAL_DATA), "val")
         val = [val_source(k) for k in range(t.eval_batches)]
     else:
         from indoorbev_jax.data.dataset import KittiDataset
@@ -589,6 +626,42 @@ def make_sources(config: Config, data: str | None, seed: int, skip_bad: bool):
     return train, val
 
 
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _describe_source(data: str | None) -> str:
+    return "the simulator" if data is None else data
+
+
+def _check_resume(config_path: Path, run_path: Path, config: Config, data: str | None) -> None:
+    """Raises ``ValueError`` unless the run in ``config_path``'s folder may go on with
+    ``config`` and ``data`` (a resolved folder, or None for the simulator): only fields in
+    ``RESUME_MAY_CHANGE`` may differ (logged as a note), and the data source may not."""
+    diff = config_diff(Config.from_dict(json.loads(config_path.read_text())), config)
+    lines = {k: f"  {k}: {a!r} -> {b!r}" for k, (a, b) in diff.items()}
+    refused = [line for k, line in lines.items() if k not in RESUME_MAY_CHANGE]
+    if refused:
+        raise ValueError(
+            f"{config_path}: the workdir holds a run with another config (saved -> given):\n"
+            + "\n".join(refused)
+            + f"\nonly {', '.join(sorted(RESUME_MAY_CHANGE))} may change on resume; train in "
+            "another workdir (--init-from this one to start from its parameters)"
+        )
+    if lines:
+        log.info("note: resuming with (saved -> given):\n%s", "\n".join(lines.values()))
+    if not run_path.exists():  # a run from before run.json was kept: nothing to compare
+        return
+    saved = json.loads(run_path.read_text())["data"]
+    if saved != data:
+        raise ValueError(
+            f"{run_path}: the run trained on {_describe_source(saved)}, this command gives "
+            f"{_describe_source(data)} (if the same data moved, edit the data field of run.json)"
+        )
+
+
 def train_and_evaluate(
     config: Config,
     workdir: str | os.PathLike,
@@ -600,6 +673,10 @@ def train_and_evaluate(
     init_strict: bool = True,
 ) -> TrainState:
     """Trains ``config`` in ``workdir``, resuming from its latest readable checkpoint.
+
+    A workdir that holds a run resumes only with the same data source and a config that
+    differs at most in ``RESUME_MAY_CHANGE``; ``config.json`` and ``run.json`` are written
+    once every check has passed.
 
     Args:
       config: the run configuration (``config.train`` sets steps, batch size, schedule).
@@ -621,21 +698,22 @@ def train_and_evaluate(
 
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    config_path = workdir / "config.json"
-    if config_path.exists() and Config.from_dict(json.loads(config_path.read_text())) != config:
-        raise ValueError(f"{config_path}: the workdir holds a run with another config")
-    tmp = config_path.with_suffix(".tmp")
-    tmp.write_text(config.to_json())
-    os.replace(tmp, config_path)
+    # Every check runs before config.json is written, so a refused start leaves nothing
+    # that would refuse the corrected command too.
+    config_path, run_path = workdir / "config.json", workdir / "run.json"
+    data_source = None if data is None else str(Path(data).resolve())
+    if config_path.exists():
+        _check_resume(config_path, run_path, config, data_source)
 
     t = config.train
     mesh = data_mesh()
     if t.batch_size % mesh.size:
         raise ValueError(f"train.batch_size={t.batch_size} does not split over {mesh.size} devices")
     key = jax.random.key(t.seed)
-    state = init_state(config, jax.random.fold_in(key, 0))
+    state = init_state(config, jax.random.fold_in(key, KEY_INIT))
     checkpoints = Checkpoints(workdir, t.keep_checkpoints)
     restored = checkpoints.restore(state)
+    record = None
     if restored is not None:
         state = restored
         log.info("resumed from step %d", int(state.step))
@@ -653,20 +731,22 @@ def train_and_evaluate(
                 len(report["unused"]),
                 report["unused"],
             )
-        tmp = workdir / "init_from.tmp"
-        tmp.write_text(json.dumps(record, indent=2) + "\n")
-        os.replace(tmp, workdir / "init_from.json")
         log.info("parameters from %s", init_from)
     start = int(state.step)
-    metrics_log = MetricsLog(workdir, start)
     state = replicate(state, mesh)
     hyper = replicate(Hyper.from_config(config), mesh)
-    step_key = jax.random.fold_in(key, 1)
-    source, val_batches = make_sources(config, data, t.seed, skip_bad_frames)
+    step_key = jax.random.fold_in(key, KEY_STEPS)
+    train_source, val_batches = make_sources(config, data, t.seed, skip_bad_frames)
+    metrics_log = MetricsLog(workdir, start)
+    if record is not None:
+        _write_atomic(workdir / "init_from.json", json.dumps(record, indent=2) + "\n")
+    _write_atomic(run_path, json.dumps({"data": data_source}) + "\n")
+    _write_atomic(config_path, config.to_json())
+
     database = None
     if t.augment and config.augment.gt_sampling > 0:
         # Cut from the first training batches; the same ones on every resume.
-        database = gt_database(source, GT_DATABASE_BATCHES, config.grid)
+        database = gt_database(train_source, GT_DATABASE_BATCHES, config.grid)
         log.info("ground-truth sampling database: %d objects", database.classes.shape[0])
     train_step = jit_train_step(config, make_train_step(config, database), donate_argnums=0)
     predict_fn = make_predict_fn(config)
@@ -674,7 +754,7 @@ def train_and_evaluate(
     bar = tqdm(total=t.total_steps, initial=start, disable=not progress, unit="step")
     pending, window_start, window_steps = [], time.perf_counter(), 0
     try:
-        for step, batch in prefetch(source, start, t.total_steps):
+        for step, batch in prefetch(train_source, start, t.total_steps):
             state, metrics = train_step(state, shard_batch(batch, mesh), step_key, hyper)
             pending.append(metrics)
             window_steps += 1
