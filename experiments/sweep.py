@@ -4,42 +4,44 @@ weights: ``python experiments/sweep.py --preset small --workdir runs/sweep
 
 All K models see the same batches and augmentation keys; each has its own parameters,
 optimizer state, peak learning rate and loss weights (traced arrays, ``train.Hyper``).
+Rerunning the same command after a kill resumes from the latest checkpoint.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
-from indoorbev_jax.config import Config
+from indoorbev_jax.config import add_config_arguments, config_from_args
 from indoorbev_jax.sweep import run_sweep, stack_hypers
+
+WEIGHTS = ("cls", "dice", "focal", "dims", "pos", "yaw", "background")
 
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--preset", default="small", choices=("paper", "small", "tiny"))
-    p.add_argument("--workdir", required=True)
+    p.add_argument("--workdir", required=True, help="sweep directory (resumed when it exists)")
     p.add_argument("--data", default=None, help="KITTI-style folder (default: simulator)")
-    p.add_argument("--steps", type=int, default=None)
-    p.add_argument("--learning-rates", type=float, nargs="+", required=True)
-    for name in ("cls", "dice", "focal", "dims", "pos", "yaw", "background"):
-        p.add_argument(f"--{name}-weights", type=float, nargs="+", default=None)
+    add_config_arguments(p, skip=("--learning-rate", "--eval-every"))
+    p.add_argument("--learning-rates", type=float, nargs="+", required=True,
+                   help="one peak learning rate per model (K values)")  # fmt: skip
+    for name in WEIGHTS:
+        p.add_argument(f"--{name}-weights", type=float, nargs="+", default=None,
+                       help=f"K values of loss.{name} weight (default: the config's)")  # fmt: skip
+    p.add_argument("--skip-bad-frames", action="store_true", help="skip malformed frames")
+    p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
-    config = Config.preset(args.preset)
-    if args.steps:
-        train = dataclasses.replace(
-            config.train,
-            total_steps=args.steps,
-            warmup_steps=min(config.train.warmup_steps, args.steps),
-        )
-        config = dataclasses.replace(config, train=train)
+    config = config_from_args(args)
     overrides = {
         name: getattr(args, f"{name}_weights")
-        for name in ("cls", "dice", "focal", "dims", "pos", "yaw", "background")
+        for name in WEIGHTS
         if getattr(args, f"{name}_weights") is not None
     }
-    hypers = stack_hypers(config, args.learning_rates, overrides)
-    run_sweep(config, args.workdir, hypers, args.data)
+    try:
+        hypers = stack_hypers(config, args.learning_rates, overrides)
+    except ValueError as e:
+        p.error(str(e))
+    run_sweep(config, args.workdir, hypers, args.data, skip_bad_frames=args.skip_bad_frames,
+              progress=not args.no_progress)  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -8,27 +8,17 @@ folder holding ``train.txt`` and ``val.txt``.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
 
-from indoorbev_jax.config import Config, ConfigError, with_overrides
+from indoorbev_jax.config import add_config_arguments, config_from_args
 from indoorbev_jax.train import train_and_evaluate
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--preset", default="small", choices=("paper", "small", "tiny"))
     p.add_argument("--workdir", required=True, help="run directory (resumed when it exists)")
     p.add_argument("--data", default=None, help="KITTI-style folder (default: simulator)")
-    p.add_argument("--steps", type=int, help="train.total_steps")
-    p.add_argument("--batch-size", type=int, help="train.batch_size")
-    p.add_argument("--learning-rate", type=float, help="train.learning_rate (peak)")
-    p.add_argument("--warmup-steps", type=int, help="train.warmup_steps")
-    p.add_argument("--eval-every", type=int, help="train.eval_every")
-    p.add_argument("--checkpoint-every", type=int, help="train.checkpoint_every")
-    p.add_argument("--seed", type=int, help="train.seed")
-    p.add_argument("--no-augment", action="store_true", help="train.augment = False")
-    p.add_argument("--bfloat16", action="store_true", help="bfloat16 compute (GPUs)")
+    add_config_arguments(p)
     p.add_argument("--skip-bad-frames", action="store_true", help="skip malformed frames")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument(
@@ -44,40 +34,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="with --init-from: load the parameters that match by name and shape, keep fresh "
         "ones for the rest (e.g. --set head.upsampler_skips=false from a model with skips)",
     )
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="FIELD=VALUE",
-        help="override any config field, VALUE checked against its type (repeatable), e.g. "
-        "--set head.upsampler_skips=false --set augment.gt_sampling=4",
-    )
     return p.parse_args(argv)
-
-
-def config_from_args(args: argparse.Namespace) -> Config:
-    config = Config.preset(args.preset)
-    overrides = {
-        "total_steps": args.steps,
-        "batch_size": args.batch_size,
-        "learning_rate": args.learning_rate,
-        "warmup_steps": args.warmup_steps,
-        "eval_every": args.eval_every,
-        "checkpoint_every": args.checkpoint_every,
-        "seed": args.seed,
-    }
-    train = {k: v for k, v in overrides.items() if v is not None}
-    if args.no_augment:
-        train["augment"] = False
-    if args.bfloat16:
-        train["bfloat16"] = True
-    if "total_steps" in train and "warmup_steps" not in train:
-        train["warmup_steps"] = min(config.train.warmup_steps, train["total_steps"])
-    config = dataclasses.replace(config, train=dataclasses.replace(config.train, **train))
-    try:
-        return with_overrides(config, args.set)
-    except ConfigError as e:
-        raise SystemExit(f"--set: {e}") from None
 
 
 def main(argv=None) -> None:

@@ -409,7 +409,7 @@ def test_each_use_of_the_run_key_has_its_own_stream(tmp_path, quick_start, monke
         raise _Stop
 
     monkeypatch.setattr(sweep, "init_sweep", lambda c, k, key: inits.append(key))
-    monkeypatch.setattr(sweep, "make_sweep_step", lambda c: fake_step)
+    monkeypatch.setattr(sweep, "make_sweep_step", lambda c, database=None: fake_step)
     runs = [dict(_FakeSim.keys, init=inits[0], steps=quick_start[0])]
     with pytest.raises(_Stop):
         sweep.run_sweep(CFG, tmp_path / "sweep", stack_hypers(CFG, [1e-3], {}))
@@ -545,3 +545,52 @@ def test_shard_batch_keeps_device_arrays_off_the_host(monkeypatch):
     assert out["sim"].sharding.spec == jax.sharding.PartitionSpec("data")
     np.testing.assert_array_equal(out["sim"], x)
     np.testing.assert_array_equal(out["disk"], host)
+
+
+def test_sweep_resumes_exactly(data, tmp_path):
+    """A sweep killed after its step-2 checkpoint (its log cut mid-line) and rerun ends
+    bit for bit where the uninterrupted sweep does, with the same log; a workdir holding
+    another sweep is refused."""
+    import shutil
+
+    from indoorbev_jax import sweep
+
+    t = dataclasses.replace(CFG.train, total_steps=4, log_every=2, checkpoint_every=2,
+                            keep_checkpoints=3, warmup_steps=1, augment=False)  # fmt: skip
+    cfg = dataclasses.replace(CFG, train=t)
+    hypers = stack_hypers(cfg, [1e-3, 3e-3], {"dice": [5.0, 2.0]})
+    ref = sweep.run_sweep(cfg, tmp_path / "ref", hypers, data, progress=False)
+    ref_log = (tmp_path / "ref" / "sweep.jsonl").read_text()
+    assert [json.loads(x)["step"] for x in ref_log.splitlines()] == [2, 4]
+    # The kill: the step-4 checkpoint never landed, the last record was half written.
+    killed = tmp_path / "killed"
+    shutil.copytree(tmp_path / "ref", killed)
+    shutil.rmtree(killed / "checkpoints" / "4")
+    (killed / "sweep.jsonl").write_text(ref_log.splitlines()[0] + '\n{"step": 4, "los')
+    resumed = sweep.run_sweep(cfg, killed, hypers, data, progress=False)
+    jax.tree.map(np.testing.assert_array_equal, resumed, ref)
+    assert (killed / "sweep.jsonl").read_text() == ref_log
+    with pytest.raises(ValueError, match=r"hypers\.json: the workdir holds a sweep of other"):
+        sweep.run_sweep(cfg, killed, stack_hypers(cfg, [1e-3, 2e-3], {}), data, progress=False)
+
+
+def test_sweep_logs_the_mean_loss_of_each_window(data, tmp_path, monkeypatch):
+    """Each sweep.jsonl record holds, per model, the mean loss of the steps since the last
+    record (here step s gives model j the loss (s + 1) * (j + 1))."""
+    from indoorbev_jax import sweep
+
+    calls = []
+
+    def fake_step(states, batch, key, hypers):
+        calls.append(None)
+        return states, {"loss": len(calls) * jnp.arange(1.0, 3.0)}
+
+    monkeypatch.setattr(sweep, "make_sweep_step", lambda c, database=None: fake_step)
+    t = dataclasses.replace(CFG.train, total_steps=7, log_every=3, augment=False)
+    cfg = dataclasses.replace(CFG, train=t)
+    sweep.run_sweep(cfg, tmp_path, stack_hypers(cfg, [1e-3, 2e-3], {}), data, progress=False)
+    records = [json.loads(x) for x in (tmp_path / "sweep.jsonl").read_text().splitlines()]
+    windows = [[1, 2, 3], [4, 5, 6], [7]]
+    assert [(r["step"], r["steps"]) for r in records] == [(3, 3), (6, 3), (7, 1)]
+    for record, window in zip(records, windows, strict=True):
+        np.testing.assert_allclose(record["loss"], [np.mean(window), 2 * np.mean(window)])

@@ -788,3 +788,58 @@ def with_overrides(config: Config, items: list[str] | tuple[str, ...]) -> Config
             msg = f"got {raw!r}, expected {_describe(hint)}"
             raise ConfigError(f"config field '{path}': {msg}") from None
     return Config.from_dict(d)
+
+
+# Command lines ----------------------------------------------------------------------------
+
+# (flag, train field, type, help) of the options experiments/train.py and sweep.py share.
+_TRAIN_FLAGS = (
+    ("--steps", "total_steps", int, "train.total_steps"),
+    ("--batch-size", "batch_size", int, "train.batch_size"),
+    ("--learning-rate", "learning_rate", float, "train.learning_rate (peak)"),
+    ("--warmup-steps", "warmup_steps", int, "train.warmup_steps"),
+    ("--eval-every", "eval_every", int, "train.eval_every"),
+    ("--checkpoint-every", "checkpoint_every", int, "train.checkpoint_every"),
+    ("--seed", "seed", int, "train.seed"),
+)
+
+
+def add_config_arguments(parser, skip: tuple[str, ...] = ()) -> None:
+    """The config options of the training scripts on an ``argparse`` parser: ``--preset``,
+    the ``train`` fields of ``_TRAIN_FLAGS`` (less the flags in ``skip``), ``--no-augment``,
+    ``--bfloat16`` and ``--set FIELD=VALUE``; ``config_from_args`` reads them back."""
+    parser.add_argument("--preset", default="small", choices=("paper", "small", "tiny"))
+    for flag, _, kind, text in _TRAIN_FLAGS:
+        if flag not in skip:
+            parser.add_argument(flag, type=kind, help=text)
+    parser.add_argument("--no-augment", action="store_true", help="train.augment = False")
+    parser.add_argument("--bfloat16", action="store_true", help="bfloat16 compute (GPUs)")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override any config field, VALUE checked against its type (repeatable), e.g. "
+        "--set head.upsampler_skips=false --set augment.gt_sampling=4",
+    )
+
+
+def config_from_args(args) -> Config:
+    """The config that ``add_config_arguments``' options give; exits naming a bad ``--set``.
+    ``--steps`` alone caps ``train.warmup_steps`` at the new total."""
+    config = Config.preset(args.preset)
+    train = {
+        field: getattr(args, flag[2:].replace("-", "_"), None) for flag, field, *_ in _TRAIN_FLAGS
+    }
+    train = {k: v for k, v in train.items() if v is not None}
+    if args.no_augment:
+        train["augment"] = False
+    if args.bfloat16:
+        train["bfloat16"] = True
+    if "total_steps" in train and "warmup_steps" not in train:
+        train["warmup_steps"] = min(config.train.warmup_steps, train["total_steps"])
+    config = dataclasses.replace(config, train=dataclasses.replace(config.train, **train))
+    try:
+        return with_overrides(config, args.set)
+    except ConfigError as e:
+        raise SystemExit(f"--set: {e}") from None

@@ -7,6 +7,7 @@ optimizer state, peak learning rate and loss weights (traced arrays, ``train.Hyp
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from pathlib import Path
@@ -16,17 +17,24 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
+from indoorbev_jax.augment import ObjectDatabase
 from indoorbev_jax.config import Config
 from indoorbev_jax.train import (
+    GT_DATABASE_BATCHES,
     KEY_INIT,
     KEY_STEPS,
+    Checkpoints,
     Hyper,
     TrainState,
+    check_resume,
+    gt_database,
     init_state,
     jit_train_step,
     make_sources,
     make_train_step,
     prefetch,
+    truncate_log,
+    write_text_atomic,
 )
 
 
@@ -49,31 +57,100 @@ def init_sweep(config: Config, k: int, key: jax.Array) -> TrainState:
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (k, *jnp.shape(x))), state)
 
 
-def make_sweep_step(config: Config):
-    """``(states[K], batch, key, hypers[K]) -> (states[K], metrics[K])``, jitted."""
-    return jit_train_step(config, jax.vmap(make_train_step(config), in_axes=(0, None, None, 0)))
+def make_sweep_step(config: Config, database: ObjectDatabase | None = None):
+    """``(states[K], batch, key, hypers[K]) -> (states[K], metrics[K])``, jitted; ``database``
+    feeds ground-truth sampling as in ``train.make_train_step``."""
+    if database is None:
+        return _cached_sweep_step(config)
+    step = make_train_step(config, database)
+    return jit_train_step(config, jax.vmap(step, in_axes=(0, None, None, 0)))
 
 
-def run_sweep(config: Config, workdir, hypers: Hyper, data=None) -> TrainState:
-    """Trains the K models of ``hypers`` for ``config.train.total_steps`` steps and writes
-    ``sweep.jsonl`` (per-model training loss, then validation-free summary) in ``workdir``."""
+@functools.lru_cache(maxsize=4)
+def _cached_sweep_step(config: Config):
+    # One compile per config: a resumed or repeated sweep in one process reuses it.
+    step = make_train_step(config)
+    return jit_train_step(config, jax.vmap(step, in_axes=(0, None, None, 0)))
+
+
+def hypers_to_json(hypers: Hyper) -> dict:
+    return {
+        "learning_rate": np.asarray(hypers.learning_rate).tolist(),
+        "weights": {k: np.asarray(v).tolist() for k, v in sorted(hypers.weights.items())},
+    }
+
+
+def run_sweep(
+    config: Config,
+    workdir,
+    hypers: Hyper,
+    data=None,
+    *,
+    skip_bad_frames: bool = False,
+    progress: bool = True,
+) -> TrainState:
+    """Trains the K models of ``hypers`` for ``config.train.total_steps`` steps.
+
+    ``workdir`` receives ``config.json``, ``run.json`` (the data source), ``hypers.json``
+    (the K settings), ``sweep.jsonl`` (per model, the training loss averaged over each
+    ``train.log_every`` steps) and orbax checkpoints of all K states under ``checkpoints/``
+    every ``train.checkpoint_every`` steps. Rerunning the same command after a kill resumes
+    from the latest checkpoint, exactly as ``train.train_and_evaluate`` does; a workdir
+    holding another sweep (config, data or hypers) is refused, naming what differs.
+    """
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     t = config.train
     k = int(hypers.learning_rate.shape[0])
+    config_path, run_path = workdir / "config.json", workdir / "run.json"
+    hypers_path = workdir / "hypers.json"
+    data_source = None if data is None else str(Path(data).resolve())
+    settings = hypers_to_json(hypers)
+    if config_path.exists():
+        check_resume(config_path, run_path, config, data_source)
+    if hypers_path.exists() and json.loads(hypers_path.read_text()) != settings:
+        raise ValueError(
+            f"{hypers_path}: the workdir holds a sweep of other settings "
+            f"({json.loads(hypers_path.read_text())}, given {settings}); sweep in another workdir"
+        )
     key = jax.random.key(t.seed)
     states = init_sweep(config, k, jax.random.fold_in(key, KEY_INIT))
-    step = make_sweep_step(config)
-    source, _ = make_sources(config, data, t.seed, skip_bad=False)
+    checkpoints = Checkpoints(workdir, t.keep_checkpoints, metric=None)
+    restored = checkpoints.restore(states)
+    start = 0 if restored is None else int(np.asarray(restored.step)[0])
+    states = states if restored is None else restored
+    source, _ = make_sources(config, data, t.seed, skip_bad=skip_bad_frames)
+    log_path = workdir / "sweep.jsonl"
+    if log_path.exists():
+        truncate_log(log_path, start)
+    # Written once every check has passed, as train_and_evaluate does.
+    write_text_atomic(run_path, json.dumps({"data": data_source}) + "\n")
+    write_text_atomic(config_path, config.to_json())
+    write_text_atomic(hypers_path, json.dumps(settings) + "\n")
+    database = None
+    if t.augment and config.augment.gt_sampling > 0:
+        database = gt_database(source, GT_DATABASE_BATCHES, config.grid)
+    step = make_sweep_step(config, database)
     step_key = jax.random.fold_in(key, KEY_STEPS)
-    log = (workdir / "sweep.jsonl").open("w")
-    start = time.perf_counter()
-    for s, batch in tqdm(prefetch(source, 0, t.total_steps), total=t.total_steps):
-        states, metrics = step(states, batch, step_key, hypers)
-        if (s + 1) % t.log_every == 0 or s + 1 == t.total_steps:
-            record = {"step": s + 1, "loss": np.asarray(metrics["loss"]).tolist()}
-            log.write(json.dumps(record) + "\n")
-            log.flush()
+    loss_sum, window = jnp.zeros(k), 0
+    started = time.perf_counter()
+    try:
+        batches = prefetch(source, start, t.total_steps)
+        for s, batch in tqdm(batches, total=t.total_steps, initial=start, disable=not progress):
+            states, metrics = step(states, batch, step_key, hypers)
+            loss_sum, window = loss_sum + metrics["loss"], window + 1  # stays on the device
+            done = s + 1
+            if done % t.log_every == 0 or done == t.total_steps:
+                mean = [float(v) if np.isfinite(v) else None for v in np.asarray(loss_sum / window)]
+                record = {"step": done, "steps": window, "loss": mean}  # NaN as null: strict JSON
+                with log_path.open("a") as f:
+                    f.write(json.dumps(record) + "\n")
+                loss_sum, window = jnp.zeros(k), 0
+            if done % t.checkpoint_every == 0 or done == t.total_steps:
+                checkpoints.save(states, done)
+    finally:
+        checkpoints.close()
     jax.block_until_ready(states)
-    print(f"{k} models x {t.total_steps} steps in {time.perf_counter() - start:.1f} s")
+    ran = t.total_steps - start
+    print(f"{k} models x {ran} steps in {time.perf_counter() - started:.1f} s")
     return states

@@ -39,6 +39,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from indoorbev_jax.augment import ObjectDatabase, augment_batch, build_object_database
 from indoorbev_jax.config import Config, config_diff
+from indoorbev_jax.data import kitti
 from indoorbev_jax.data.rasterize import rasterize_boxes
 from indoorbev_jax.losses import seed_loss, set_loss
 from indoorbev_jax.models import IndoorBEV
@@ -468,12 +469,16 @@ class Checkpoints:
     validation metric under ``best/``. Restoring falls back to older checkpoints, with a
     warning, when the latest is corrupt or partial."""
 
-    def __init__(self, workdir: Path, keep: int, metric: str = "pq"):
+    def __init__(self, workdir: Path, keep: int, metric: str | None = "pq"):
+        """``metric`` None: no ``best/`` (a sweep, which does not validate)."""
         self.metric = metric
         options = ocp.CheckpointManagerOptions(max_to_keep=keep, enable_async_checkpointing=False)
         self.latest = ocp.CheckpointManager(
             Path(workdir).absolute() / "checkpoints", options=options
         )
+        if metric is None:
+            self.best = None
+            return
         best_options = ocp.CheckpointManagerOptions(
             max_to_keep=1,
             best_fn=lambda m: m[metric],
@@ -482,8 +487,9 @@ class Checkpoints:
         )
         self.best = ocp.CheckpointManager(Path(workdir).absolute() / "best", options=best_options)
 
-    def save(self, state: TrainState) -> None:
-        step = int(state.step)
+    def save(self, state: TrainState, step: int | None = None) -> None:
+        """Saves ``state`` as ``step`` (default ``state.step``; a sweep's states hold K)."""
+        step = int(state.step) if step is None else step
         if step not in self.latest.all_steps():
             self.latest.save(step, args=ocp.args.StandardSave(state))
 
@@ -507,10 +513,38 @@ class Checkpoints:
 
     def close(self) -> None:
         self.latest.close()
-        self.best.close()
+        if self.best is not None:
+            self.best.close()
 
 
 # Logging ----------------------------------------------------------------------------------
+
+
+def truncate_log(path: Path, step: int) -> None:
+    """Keeps the records of a JSON-lines log up to ``step`` (a resume from that step).
+
+    A last line that is not a JSON object (a write cut off by a kill) is dropped with a
+    warning; such a line anywhere else is corruption and raises ``ValueError`` naming it.
+    """
+    lines = [
+        (n, line)
+        for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1)
+        if line.strip()
+    ]
+    kept = []
+    for k, (n, line) in enumerate(lines):
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            record = None
+        if isinstance(record, dict):
+            if record.get("step", 0) <= step:
+                kept.append(line)
+        elif k < len(lines) - 1:
+            raise ValueError(f"{path}: line {n} is not a JSON object: {line[:80]!r}")
+        else:
+            log.warning("%s: line %d is cut off (an interrupted write); dropped", path, n)
+    write_text_atomic(path, "".join(line + "\n" for line in kept))
 
 
 class MetricsLog:
@@ -523,31 +557,10 @@ class MetricsLog:
     def __init__(self, workdir: Path, resume_step: int):
         self.path = Path(workdir) / "metrics.jsonl"
         if self.path.exists():
-            kept = [line for line, r in self._records() if r.get("step", 0) <= resume_step]
-            _write_atomic(self.path, "".join(line + "\n" for line in kept))
+            truncate_log(self.path, resume_step)
         from tensorboardX import SummaryWriter
 
         self.tb = SummaryWriter(str(Path(workdir) / "tb"), purge_step=resume_step + 1)
-
-    def _records(self) -> list[tuple[str, dict]]:
-        lines = [
-            (n, line)
-            for n, line in enumerate(self.path.read_text(errors="replace").splitlines(), 1)
-            if line.strip()
-        ]
-        records = []
-        for k, (n, line) in enumerate(lines):
-            try:
-                record = json.loads(line)
-            except json.JSONDecodeError:
-                record = None
-            if isinstance(record, dict):
-                records.append((line, record))
-            elif k < len(lines) - 1:
-                raise ValueError(f"{self.path}: line {n} is not a JSON object: {line[:80]!r}")
-            else:
-                log.warning("%s: line %d is cut off (an interrupted write); dropped", self.path, n)
-        return records
 
     def write(self, step: int, kind: str, values: dict) -> None:
         # Undefined metrics (NaN) are written as null: strict JSON.
@@ -626,17 +639,15 @@ def make_sources(config: Config, data: str | None, seed: int, skip_bad: bool):
     return train, val
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+def write_text_atomic(path: Path, text: str) -> None:
+    kitti.atomic_write(Path(path), lambda tmp: tmp.write_text(text))
 
 
 def _describe_source(data: str | None) -> str:
     return "the simulator" if data is None else data
 
 
-def _check_resume(config_path: Path, run_path: Path, config: Config, data: str | None) -> None:
+def check_resume(config_path: Path, run_path: Path, config: Config, data: str | None) -> None:
     """Raises ``ValueError`` unless the run in ``config_path``'s folder may go on with
     ``config`` and ``data`` (a resolved folder, or None for the simulator): only fields in
     ``RESUME_MAY_CHANGE`` may differ (logged as a note), and the data source may not."""
@@ -703,7 +714,7 @@ def train_and_evaluate(
     config_path, run_path = workdir / "config.json", workdir / "run.json"
     data_source = None if data is None else str(Path(data).resolve())
     if config_path.exists():
-        _check_resume(config_path, run_path, config, data_source)
+        check_resume(config_path, run_path, config, data_source)
 
     t = config.train
     mesh = data_mesh()
@@ -739,9 +750,9 @@ def train_and_evaluate(
     train_source, val_batches = make_sources(config, data, t.seed, skip_bad_frames)
     metrics_log = MetricsLog(workdir, start)
     if record is not None:
-        _write_atomic(workdir / "init_from.json", json.dumps(record, indent=2) + "\n")
-    _write_atomic(run_path, json.dumps({"data": data_source}) + "\n")
-    _write_atomic(config_path, config.to_json())
+        write_text_atomic(workdir / "init_from.json", json.dumps(record, indent=2) + "\n")
+    write_text_atomic(run_path, json.dumps({"data": data_source}) + "\n")
+    write_text_atomic(config_path, config.to_json())
 
     database = None
     if t.augment and config.augment.gt_sampling > 0:
