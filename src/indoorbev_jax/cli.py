@@ -1,6 +1,6 @@
 """The ``indoorbev`` command line.
 
-indoorbev dataset check ROOT [--split NAME] [--preset small]
+indoorbev dataset check ROOT [--split NAME] [--preset small] [--set FIELD=VALUE]
 indoorbev ros2 detect --checkpoint MODEL [--topic /livox/lidar] [--record BAG]
 """
 
@@ -12,16 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
-from indoorbev_jax.config import Config
 
-
-def _add_preset(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--preset",
-        default="small",
-        choices=("paper", "small", "tiny"),
-        help="config preset giving the grid, padding and classes (default: small)",
-    )
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return value
 
 
 def _intensity_units(text: str) -> str | float:
@@ -68,17 +64,20 @@ def add_views_argument(parser: argparse.ArgumentParser, default_help: str) -> No
 
 def dataset_check(args: argparse.Namespace) -> int:
     """Validates every frame of a dataset folder; prints statistics and the first problems."""
+    from indoorbev_jax.config import ConfigError
     from indoorbev_jax.data import kitti
-    from indoorbev_jax.data.dataset import KittiDataset
+    from indoorbev_jax.data.dataset import KittiDataset, dataset_config
 
-    config = Config.preset(args.preset)
     root = Path(args.root)
     problems: list[str] = []
     try:
+        config, source = dataset_config(root, args.preset, args.set)
         ds = KittiDataset(root, args.split, config)
-    except kitti.DatasetError as e:
+    except (kitti.DatasetError, ConfigError) as e:
         print(f"error: {e}")
         return 1
+    if len(ds) == 0:
+        problems.append(f"{root}: no frames in split {args.split or 'all'}")
     class_counts = np.zeros(config.num_classes, np.int64)
     valid_points, raw_points = [], []
     invalid = dropped_points = dropped_objects = 0
@@ -100,7 +99,7 @@ def dataset_check(args: argparse.Namespace) -> int:
                 f"{ds.ids[k]}: {stats.objects} objects, only the first "
                 f"{config.data.max_objects} fit data.max_objects"
             )
-    print(f"dataset {root} (split: {args.split or 'all'}, preset {config.name})")
+    print(f"dataset {root} (split: {args.split or 'all'}, {source})")
     print(f"frames: {len(ds)} ({len(ds) - len(valid_points)} unreadable)")
     print("objects per class:")
     for name, n in zip(config.data.class_names, class_counts, strict=True):
@@ -126,6 +125,8 @@ def dataset_check(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from indoorbev_jax.evaluate import add_dataset_config_arguments, add_eval_command
+
     parser = argparse.ArgumentParser(prog="indoorbev", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
 
@@ -135,11 +136,9 @@ def build_parser() -> argparse.ArgumentParser:
     check = dataset.add_parser("check", help="validate a KITTI-style dataset folder")
     check.add_argument("root", help="dataset folder (velodyne/, label_2/, optional mask_2/)")
     check.add_argument("--split", default=None, help="split name (<root>/<split>.txt)")
-    check.add_argument("--max-problems", type=int, default=10)
-    _add_preset(check)
+    check.add_argument("--max-problems", type=_positive_int, default=10)
+    add_dataset_config_arguments(check)
     check.set_defaults(func=dataset_check)
-
-    from indoorbev_jax.evaluate import add_eval_command  # owns `indoorbev eval`
 
     add_eval_command(commands)
 

@@ -92,12 +92,19 @@ def folder_evaluator(
     ids = kitti.read_split(gt_root, split) if split else kitti.list_frames(gt_root)
     if not ids:
         raise kitti.DatasetError(f"{gt_root}: no frames (label_2/*.txt or the split file)")
+    where = gt_root / f"{split}.txt" if split else gt_root / "label_2"
+    for side, root in (("ground-truth", gt_root), ("prediction", pred_root)):
+        missing = [i for i in ids if not kitti.frame_paths(root, i)["labels"].is_file()]
+        if missing:
+            hint = " (write an empty file for a frame with no detections)" * (root == pred_root)
+            raise kitti.DatasetError(
+                f"{where}: {len(missing)} of {len(ids)} frames have no {side} label file, "
+                f"e.g. {kitti.frame_paths(root, missing[0])['labels']}{hint}"
+            )
     k = config.num_classes
     evaluator = Evaluator(config.inference, class_names=config.data.class_names)
     for frame_id in ids:
         gp, pp = kitti.frame_paths(gt_root, frame_id), kitti.frame_paths(pred_root, frame_id)
-        if not pp["labels"].exists():
-            raise kitti.DatasetError(f"{pp['labels']}: prediction file missing")
         gt = kitti.read_labels(gp["labels"], config.data)
         pred = kitti.read_labels(pp["labels"], config.data)
         if len(pred) and pred.scores is None:
@@ -184,20 +191,27 @@ def report(
 
 def eval_command(args: argparse.Namespace) -> int:
     """Entry point of ``indoorbev eval``: prints ``report``'s text, optionally writes its JSON."""
+    from indoorbev_jax.config import ConfigError
     from indoorbev_jax.data import kitti
+    from indoorbev_jax.data.dataset import dataset_config
 
-    config = Config.preset(args.preset)
     try:
+        config, source = dataset_config(args.gt, args.preset, args.set)
+        if args.json:  # a bad path fails now, not after the whole evaluation
+            out = Path(args.json)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            if out.is_dir():
+                raise IsADirectoryError(f"--json {out}: is a folder, expected a file name")
         evaluator = folder_evaluator(args.gt, args.pred, config, args.split)
-    except kitti.DatasetError as e:
+    except (kitti.DatasetError, ConfigError, OSError) as e:
         print(f"error: {e}")
         return 1
     text, payload = report(evaluator, config.data.class_names)
-    print(f"ground truth {args.gt}, predictions {args.pred} (preset {config.name})")
+    print(f"ground truth {args.gt}, predictions {args.pred} ({source})")
     print(text)
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(payload, indent=2) + "\n")
+        text = json.dumps(payload, indent=2) + "\n"
+        kitti.atomic_write(Path(args.json), lambda tmp: tmp.write_text(text))
         print(f"metrics written to {args.json}")
     return 0
 
@@ -211,10 +225,25 @@ def add_eval_command(commands) -> None:
     parser.add_argument("--pred", required=True, help="prediction folder (label_2/ + scores)")
     parser.add_argument("--split", default=None, help="frame list <gt>/<split>.txt")
     parser.add_argument("--json", default=None, help="also write the metrics to this file")
+    add_dataset_config_arguments(parser)
+    parser.set_defaults(func=eval_command)
+
+
+def add_dataset_config_arguments(parser) -> None:
+    """``--preset`` and ``--set`` of the commands that read a dataset folder
+    (``dataset.dataset_config``)."""
     parser.add_argument(
         "--preset",
-        default="small",
+        default=None,
         choices=("paper", "small", "tiny"),
-        help="config preset giving the grid and classes (default: small)",
+        help="config preset giving the grid and classes (default: the config in the "
+        "dataset's export.json, else small)",
     )
-    parser.set_defaults(func=eval_command)
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help='override a config field (repeatable), e.g. --set \'data.class_map={"Desk": '
+        '"Table"}\'',
+    )

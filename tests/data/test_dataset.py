@@ -1,5 +1,7 @@
 """KittiDataset: static shapes, invalid points counted, masks from files or boxes."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -131,3 +133,58 @@ def test_dataset_check_cli(tmp_path, capsys):
     assert cli_main(["dataset", "check", str(tmp_path), "--preset", "tiny"]) == 1
     out = capsys.readouterr().out
     assert "000002.txt:1: expected 15 fields" in out
+
+
+def test_dataset_commands_take_the_exports_config_and_set(tmp_path, capsys):
+    """Without --preset, check and eval read the grid and classes from export.json; --set
+    maps a class name; an empty split is a problem; files are world-readable as umask says."""
+    import os
+
+    make_dataset(tmp_path)
+    (tmp_path / "export.json").write_text(json.dumps({"seed": 0, "config": CFG.to_dict()}))
+    # The tiny grid's mask would not fit the default (small) preset's grid.
+    assert cli_main(["dataset", "check", str(tmp_path), "--split", "train"]) == 0
+    assert f"the config of {tmp_path / 'export.json'} (preset tiny)" in capsys.readouterr().out
+    kitti.write_split(tmp_path, "val", [])
+    assert cli_main(["dataset", "check", str(tmp_path), "--split", "val"]) == 1
+    assert f"{tmp_path}: no frames in split val" in capsys.readouterr().out
+    (tmp_path / "label_2" / "000002.txt").write_text(
+        (tmp_path / "label_2" / "000000.txt").read_text().replace("Table", "Desk")
+    )
+    assert cli_main(["dataset", "check", str(tmp_path), "--split", "train"]) == 1
+    assert "unknown class 'Desk'" in capsys.readouterr().out
+    mapped = ["--set", 'data.class_map={"Desk": "Table"}']
+    assert cli_main(["dataset", "check", str(tmp_path), "--split", "train", *mapped]) == 0
+    capsys.readouterr()
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "train.txt").stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_eval_names_missing_ground_truth_duplicates_and_bad_json_paths(tmp_path, capsys):
+    make_dataset(tmp_path / "gt")
+    pred = tmp_path / "pred"
+    for fid in ("000000", "000001", "000002"):
+        scored = kitti.read_labels(tmp_path / "gt" / "label_2" / f"{fid}.txt", CFG.data)
+        scored.scores = np.ones(len(scored), np.float32)
+        kitti.write_labels(pred / "label_2" / f"{fid}.txt", scored, CLASS_NAMES)
+    argv = ["eval", "--gt", str(tmp_path / "gt"), "--pred", str(pred), "--preset", "tiny"]
+    # A split naming a frame whose ground truth is missing: named, no traceback.
+    kitti.write_split(tmp_path / "gt", "odd", ["000000", "777777"])
+    assert cli_main([*argv, "--split", "odd"]) == 1
+    out = capsys.readouterr().out
+    assert "odd.txt: 1 of 2 frames have no ground-truth label file, e.g. " in out
+    assert "777777.txt" in out
+    # The same id twice would count its frame twice.
+    (tmp_path / "gt" / "dup.txt").write_text("000000\n000001\n\n000000\n")
+    assert cli_main([*argv, "--split", "dup"]) == 1
+    assert "dup.txt:4: frame id '000000' again (first on line 1)" in capsys.readouterr().out
+    # An unusable --json path fails before the evaluation, not after it.
+    (tmp_path / "file").write_text("")
+    assert cli_main([*argv, "--split", "train", "--json", str(tmp_path / "file" / "x")]) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("error:") and "frames:" not in out
+    assert cli_main([*argv, "--split", "train", "--json", str(tmp_path)]) == 1
+    assert "is a folder, expected a file name" in capsys.readouterr().out
+    assert cli_main([*argv, "--split", "train", "--json", str(tmp_path / "m.json")]) == 0
+    assert "ap" in json.loads((tmp_path / "m.json").read_text())

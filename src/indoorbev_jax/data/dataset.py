@@ -217,3 +217,37 @@ class KittiDataset:
         stop = len(order) - len(order) % batch_size if drop_remainder else len(order)
         for start in range(0, stop, batch_size):
             yield collate([self.load(int(k))[0] for k in order[start : start + batch_size]])
+
+
+def dataset_config(
+    root: str | os.PathLike, preset: str | None = None, overrides=()
+) -> tuple[Config, str]:
+    """(config, where it came from) for reading the dataset folder ``root``: the ``preset``
+    when given, else the config recorded in ``root/export.json`` (a simulator export), else
+    the ``small`` preset; then the ``SECTION.FIELD=VALUE`` ``overrides`` (``--set``).
+
+    Raises:
+      kitti.DatasetError: an unreadable export.json (named).
+      config.ConfigError: a bad override (named).
+    """
+    import json
+
+    from indoorbev_jax.config import with_overrides
+
+    meta_path = Path(root) / "export.json"
+    if preset is not None:
+        config, source = Config.preset(preset), f"preset {preset}"
+    elif meta_path.exists():
+        try:
+            config = Config.from_dict(json.loads(meta_path.read_text())["config"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise kitti.DatasetError(
+                f"{meta_path}: cannot read its config ({e!r}); pass --preset"
+            ) from None
+        source = f"the config of {meta_path} (preset {config.name})"
+    else:
+        config, source = Config.small(), "preset small (the default; no export.json)"
+    if overrides:
+        config = with_overrides(config, list(overrides))
+        source += " with --set " + " ".join(overrides)
+    return config, source

@@ -91,15 +91,27 @@ class ObjectLabels:
         return np.concatenate([self.pos[:, :2], self.dims[:, :2], self.yaw[:, None]], axis=1)
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+# mkstemp makes owner-only files; a dataset is shared, so files get the usual umask mode.
+_FILE_MODE = 0o666 & ~_umask()
+
+
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """Calls ``write(tmp)`` on a temporary file beside ``path``, then renames it into place,
-    so that ``path`` is either absent, the old file or the whole new one."""
+    so that ``path`` is either absent, the old file or the whole new one. The file gets the
+    mode a plain ``open`` would give (0o666 less the process umask)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
     try:
         write(Path(tmp))
+        os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -309,7 +321,18 @@ def read_split(root: str | os.PathLike, split: str) -> list[str]:
     path = Path(root) / f"{split}.txt"
     if not path.exists():
         raise DatasetError(f"{path}: split file not found")
-    return [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    ids, first_line = [], {}
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        frame_id = line.strip()
+        if not frame_id:
+            continue
+        if frame_id in first_line:  # counted twice, it would weigh twice in every metric
+            raise DatasetError(
+                f"{path}:{n}: frame id {frame_id!r} again (first on line {first_line[frame_id]})"
+            )
+        first_line[frame_id] = n
+        ids.append(frame_id)
+    return ids
 
 
 def write_split(root: str | os.PathLike, split: str, ids: list[str]) -> None:
