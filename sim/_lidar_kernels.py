@@ -30,7 +30,11 @@ import warp as wp
 
 from . import _ray_constants as rc
 
+# No start-up banner or module-load lines on stdout (they mix into the commands' output):
+# ``quiet`` before Warp 1.10, ``log_level`` after it.
 wp.config.quiet = True
+if hasattr(wp, "LOG_WARNING"):
+    wp.config.log_level = wp.LOG_WARNING
 # Forward only: nothing differentiates through a ray cast, and it halves the compile time.
 wp.set_module_options({"enable_backward": False})
 

@@ -387,3 +387,17 @@ def test_default_method_follows_the_environment(monkeypatch):
     lidar.default_method.cache_clear()
     with pytest.raises(ValueError, match="method must be one of"):
         lidar.cast_rays(None, None, jnp.zeros(3), jnp.ones((2, 3)), 1.0, method="bvh")
+
+
+def test_warp_prints_nothing_on_stdout():
+    """Warp's start-up banner and module-load lines would mix into the commands' output."""
+    import subprocess
+    import sys
+
+    code = (
+        "import indoorbev_sim._lidar_kernels as k, warp as wp; wp.init(); "
+        "wp.load_module(k, device='cpu')"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout == ""
