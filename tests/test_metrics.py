@@ -721,4 +721,6 @@ def test_eval_cli_matches_metric_functions(tmp_path, capsys):
     # A missing prediction file is an error naming it.
     (tmp_path / "pred/label_2/c.txt").unlink()
     assert main([*argv, "--preset", "tiny"]) == 1
-    assert "pred/label_2/c.txt: prediction file missing" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "1 of 3 frames have no prediction label file, e.g. " in printed
+    assert "pred/label_2/c.txt (write an empty file" in printed

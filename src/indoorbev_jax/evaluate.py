@@ -106,6 +106,11 @@ def folder_evaluator(
     for frame_id in ids:
         gp, pp = kitti.frame_paths(gt_root, frame_id), kitti.frame_paths(pred_root, frame_id)
         gt = kitti.read_labels(gp["labels"], config.data)
+        if gt.scores is not None:
+            raise kitti.DatasetError(
+                f"{gp['labels']}: ground truth with a score column (16th); are the ground "
+                f"truth and the predictions swapped?"
+            )
         pred = kitti.read_labels(pp["labels"], config.data)
         if len(pred) and pred.scores is None:
             raise kitti.DatasetError(f"{pp['labels']}: predictions need the score column (16th)")
@@ -208,6 +213,11 @@ def eval_command(args: argparse.Namespace) -> int:
         return 1
     text, payload = report(evaluator, config.data.class_names)
     print(f"ground truth {args.gt}, predictions {args.pred} ({source})")
+    if args.split is None:  # with a split, the other splits' predictions are expected
+        extra = sorted(set(kitti.list_frames(args.pred)) - set(kitti.list_frames(args.gt)))
+        if extra:
+            print(f"note: {len(extra)} prediction files have no ground truth and are not "
+                  f"evaluated, e.g. {extra[0]}")  # fmt: skip
     print(text)
     if args.json:
         text = json.dumps(payload, indent=2) + "\n"

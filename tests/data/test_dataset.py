@@ -188,3 +188,18 @@ def test_eval_names_missing_ground_truth_duplicates_and_bad_json_paths(tmp_path,
     assert "is a folder, expected a file name" in capsys.readouterr().out
     assert cli_main([*argv, "--split", "train", "--json", str(tmp_path / "m.json")]) == 0
     assert "ap" in json.loads((tmp_path / "m.json").read_text())
+
+
+def test_eval_refuses_scored_ground_truth_and_notes_extra_predictions(tmp_path, capsys):
+    make_dataset(tmp_path / "gt")
+    pred = tmp_path / "pred"
+    for fid in ("000000", "000001", "000002", "000009"):
+        labels = kitti.read_labels(tmp_path / "gt" / "label_2" / "000000.txt", CFG.data)
+        labels.scores = np.ones(len(labels), np.float32)
+        kitti.write_labels(pred / "label_2" / f"{fid}.txt", labels, CLASS_NAMES)
+    argv = ["eval", "--preset", "tiny"]
+    assert cli_main([*argv, "--gt", str(tmp_path / "gt"), "--pred", str(pred)]) == 0
+    assert "note: 1 prediction files have no ground truth" in capsys.readouterr().out
+    (pred / "label_2" / "000009.txt").unlink()
+    assert cli_main([*argv, "--gt", str(pred), "--pred", str(tmp_path / "gt")]) == 1
+    assert "000000.txt: ground truth with a score column" in capsys.readouterr().out
