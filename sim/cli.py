@@ -1,13 +1,14 @@
 """``indoorbev-sim``: export simulated datasets, draw BEV pictures, check labels.
 
-    indoorbev-sim export --out DIR --frames N --seed S [--rosbag PATH] [--preset tiny]
-    indoorbev-sim show DIR --out PICS [--ids 000000 000001] [--preset tiny]
+    indoorbev-sim export --out DIR --frames N --seed S [--rosbag PATH] [--preset paper]
+    indoorbev-sim show DIR --out PICS [--ids 000000 000001] [--preset paper]
     indoorbev-sim check --frames 200 [--preset paper] [--noise-free]
     indoorbev-sim ros2 publish [--preset small] [--rate 10] [--frames N] [--record BAG]
 
 Compiled generators are kept in a persistent XLA cache (``--cache``, default
 ``~/.cache/indoorbev_sim/xla``; ``--cache ''`` disables it), so a resumed export does not
-compile again.
+compile again. Without ``--preset``, ``export`` (resuming) and ``show`` take the preset that
+``DIR/export.json`` records, else paper.
 """
 
 from __future__ import annotations
@@ -18,16 +19,30 @@ import os
 import sys
 from pathlib import Path
 
+from indoorbev_jax.cli import positive_int
 from indoorbev_jax.config import Config
 
 
 def _config(args) -> Config:
-    cfg = Config.preset(args.preset)
+    preset = args.preset
+    if preset is None:  # export and show: the preset the folder was exported with
+        from indoorbev_sim.export import saved_preset
+
+        preset = saved_preset(args.out if args.command == "export" else args.root) or "paper"
+    cfg = Config.preset(preset)
     if getattr(args, "noise_free", False):
         cfg = dataclasses.replace(
             cfg, sim=dataclasses.replace(cfg.sim, range_noise=0.0, dropout=0.0)
         )
     return cfg
+
+
+def _check_show_root(root: Path, ids: list[str] | None) -> None:
+    # A typo in DIR would otherwise "write 0 pictures" and succeed.
+    if not root.is_dir():
+        raise ValueError(f"{root}: no such dataset folder")
+    if ids is None and not any((root / "label_2").glob("*.txt")):
+        raise ValueError(f"{root}: holds no frames (no label_2/*.txt files)")
 
 
 def _use_cache(path: str) -> None:
@@ -43,13 +58,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="indoorbev-sim", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     default_cache = os.environ.get("INDOORBEV_SIM_CACHE", "~/.cache/indoorbev_sim/xla")
+    preset_help = "config preset (paper, small, tiny; default: DIR/export.json's, else paper)"
 
     ex = sub.add_parser("export", help="write a KITTI-layout dataset (resumable)")
     ex.add_argument("--out", required=True, help="dataset root folder")
-    ex.add_argument("--frames", type=int, required=True)
+    ex.add_argument("--frames", type=positive_int, required=True)
     ex.add_argument("--seed", type=int, default=0)
     ex.add_argument("--rosbag", default=None, help="also write a ROS2 bag at this path")
-    ex.add_argument("--preset", default="paper", help="config preset (paper, small, tiny)")
+    ex.add_argument("--preset", default=None, help=preset_help)
     ex.add_argument("--no-progress", action="store_true")
     ex.add_argument("--throttle", type=float, default=0.0, help="pause (s) after each scene")
     ex.add_argument("--cache", default=default_cache, help="persistent XLA cache folder")
@@ -58,11 +74,11 @@ def main(argv: list[str] | None = None) -> int:
     sh.add_argument("root", help="dataset root folder")
     sh.add_argument("--out", required=True, help="folder for the PNGs")
     sh.add_argument("--ids", nargs="*", default=None, help="frame ids (default: all)")
-    sh.add_argument("--preset", default="paper", help="config preset (sets the grid)")
+    sh.add_argument("--preset", default=None, help=preset_help)
 
     ck = sub.add_parser("check", help="label consistency and class statistics over N frames")
-    ck.add_argument("--frames", type=int, default=200)
-    ck.add_argument("--batch", type=int, default=8)
+    ck.add_argument("--frames", type=positive_int, default=200)
+    ck.add_argument("--batch", type=positive_int, default=8)
     ck.add_argument("--seed", type=int, default=0)
     ck.add_argument("--preset", default="paper")
     ck.add_argument("--split", default="train")
@@ -93,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
 
     args = parser.parse_args(argv)
     try:
+        if args.command == "show":
+            _check_show_root(Path(args.root), args.ids)
         cfg = _config(args)
         if args.command == "export":
             from indoorbev_sim.export import export

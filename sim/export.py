@@ -9,7 +9,10 @@ else to train. Each frame is a pure function of (seed, j, t), so:
   frame is complete when its label file exists;
 * a rerun after a kill skips the complete scenes and regenerates the rest, giving exactly
   the files of an uninterrupted run (``export.json`` pins seed, frame count and config;
-  a rerun with different ones is refused, naming that file);
+  a rerun with different ones is refused, naming that file and each differing field);
+* a folder without ``export.json`` that holds frames, masks or split lists (another
+  dataset, ``indoorbev predict`` output) is refused, never written into;
+* the options are checked (bag target, throttle) before any frame is generated;
 * the split files and the bag are (re)written at the end, from the frames on disk.
 
 ROS2 bag (``rosbags``, pure Python, no ROS install): ``/lidar/points``
@@ -25,15 +28,16 @@ import functools
 import json
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
-from indoorbev_jax.config import Config
+from indoorbev_jax.config import Config, flatten_dict
 from indoorbev_jax.data import kitti
-from indoorbev_jax.rosbag import markers_to_labels, typestore
+from indoorbev_jax.rosbag import check_bag_target, markers_to_labels, typestore
 
 SPLITS = ("train", "val", "test")
 POINTS_TOPIC, OBJECTS_TOPIC = "/lidar/points", "/lidar/objects"
@@ -68,6 +72,34 @@ def _complete(root: Path, fid: str) -> bool:
     return all(paths[k].exists() for k in ("points", "mask", "labels"))
 
 
+# Files a KITTI export or an ``indoorbev predict`` run writes: without export.json they are
+# another dataset's, and an export must not mix its frames into them.
+_DATA_DIRS = ("velodyne", "label_2", "mask_2")
+
+
+def _dataset_files(root: Path) -> list[str]:
+    """What of a dataset ``root`` holds: its frame folders (with file counts), split lists."""
+    held = []
+    for name in _DATA_DIRS:
+        n = sum(p.is_file() for p in (root / name).glob("*"))
+        held += [f"{name}/ ({n} files)"] if n else []
+    return held + [f"{s}.txt" for s in SPLITS if (root / f"{s}.txt").is_file()]
+
+
+def _meta_diff(old: dict, new: dict, limit: int = 10) -> str:
+    """Where export.json (``old``) and this run (``new``) differ, as dotted paths
+    ``"config.grid.cell_size: 0.1 (saved) vs 0.25 (given)"``: seed, frames and the preset
+    name first, at most ``limit`` fields. Compared as JSON rather than through
+    ``config_diff``, so that a field only one side has (another version) shows too."""
+    a, b = flatten_dict(old), flatten_dict(new)
+    absent = "(absent)"
+    keys = [k for k in a.keys() | b.keys() if a.get(k, absent) != b.get(k, absent)]
+    keys.sort(key=lambda k: (k.startswith("config.") and k != "config.name", k))
+    rows = [f"{k}: {a.get(k, absent)!r} (saved) vs {b.get(k, absent)!r} (given)" for k in keys]
+    more = [f"and {len(rows) - limit} more fields"] if len(rows) > limit else []
+    return "; ".join(rows[:limit] + more)
+
+
 def _check_meta(root: Path, meta: dict) -> None:
     path = root / "export.json"
     meta = json.loads(json.dumps(meta))  # tuples -> lists, as read back
@@ -76,17 +108,40 @@ def _check_meta(root: Path, meta: dict) -> None:
             old = json.loads(path.read_text())
         except json.JSONDecodeError as e:
             raise ExportError(f"{path}: unreadable ({e}); remove it or use another --out") from e
+        if not isinstance(old, dict):
+            raise ExportError(f"{path}: not an export record (a JSON object); use another --out")
         if old != meta:
-            diff = sorted(k for k in meta if old.get(k) != meta[k])
             raise ExportError(
-                f"{path}: this folder holds an export with different {diff}; "
-                "rerun with the same settings to resume, or use another --out"
+                f"{path}: this folder holds an export with other settings: "
+                f"{_meta_diff(old, meta)}; rerun with the saved settings to resume, or use "
+                "another --out"
             )
     else:
-        root.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(meta, indent=1))
-        os.replace(tmp, path)
+        held = _dataset_files(root)
+        if held:
+            raise ExportError(
+                f"{root}: holds {', '.join(held)} but no export.json, so not an export of "
+                "this command to resume; use another --out"
+            )
+        kitti.atomic_write(path, lambda p: p.write_text(json.dumps(meta, indent=1)))
+
+
+def saved_preset(root: str | os.PathLike) -> str | None:
+    """The preset (paper, small, tiny) named by the config ``root/export.json`` records
+    (``Config.name``), or None when there is no export.json or it names none of them.
+
+    Raises:
+      ExportError: an unreadable export.json (named).
+    """
+    path = Path(root) / "export.json"
+    if not path.exists():
+        return None
+    try:
+        name = json.loads(path.read_text())["config"]["name"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ExportError(f"{path}: cannot read its config ({e!r}); pass --preset") from None
+    # A field changed from the preset's is then named by the export's settings check.
+    return name if name in ("paper", "small", "tiny") else None
 
 
 def scene_frame(batch, info, t: int) -> tuple[np.ndarray, kitti.ObjectLabels]:
@@ -132,28 +187,44 @@ def export(
       progress: show a tqdm progress bar.
       throttle: seconds to pause after each generated scene (to leave a shared machine some
         breath; the resume test uses it to kill an export midway).
+
+    Raises:
+      ValueError: frames <= 0 or throttle < 0 (named); ``rosbag`` names an existing path
+        that is not a bag of this export (``BagError``, a ValueError), checked up front.
+      ExportError: ``out`` holds an export with other settings, or dataset files without
+        export.json.
     """
     from tqdm import tqdm
 
     if frames <= 0:
         raise ValueError(f"frames: must be > 0, got {frames}")
+    if not (math.isfinite(throttle) and throttle >= 0):
+        raise ValueError(f"throttle: must be a number of seconds >= 0, got {throttle}")
+    if rosbag is not None:  # write_bag runs last: refuse a bad target before hours of frames
+        check_bag_target(rosbag, (POINTS_TOPIC, OBJECTS_TOPIC))
     root = Path(out)
     _check_meta(root, {"seed": int(seed), "frames": int(frames), "config": config.to_dict()})
     t_len = config.sim.frames_per_sequence
-    num_scenes = math.ceil(frames / t_len)
+    scenes = [
+        [frame_id(i) for i in range(j * t_len, min((j + 1) * t_len, frames))]
+        for j in range(math.ceil(frames / t_len))
+    ]
+    todo = [j for j, ids in enumerate(scenes) if not all(_complete(root, fid) for fid in ids)]
+    done = frames - sum(len(scenes[j]) for j in todo)
+    if done:
+        print(f"resuming: {done} of {frames} frames already written", file=sys.stderr)
     key = jax.random.key(seed)
     splits: dict[str, list[str]] = {s: [] for s in SPLITS}
+    for j, ids in enumerate(scenes):
+        splits[scene_split(j)] += ids
     fn = scene_fn(config)
-    with tqdm(total=frames, desc="export", unit="frame", disable=not progress) as bar:
-        for j in range(num_scenes):
-            ids = [frame_id(j * t_len + t) for t in range(t_len) if j * t_len + t < frames]
-            split = scene_split(j)
-            splits[split] += ids
-            if not all(_complete(root, fid) for fid in ids):
-                batch, info = fn(jax.random.fold_in(key, j), split == "test")
-                write_scene(root, config, batch, info, ids)
-                time.sleep(throttle)
-            bar.update(len(ids))
+    # initial=done: frames kept from an earlier run do not count toward the rate and ETA.
+    with tqdm(total=frames, initial=done, desc="export", unit="frame", disable=not progress) as bar:
+        for j in todo:
+            batch, info = fn(jax.random.fold_in(key, j), scene_split(j) == "test")
+            write_scene(root, config, batch, info, scenes[j])
+            time.sleep(throttle)
+            bar.update(len(scenes[j]))
     for split, ids in splits.items():
         kitti.write_split(root, split, ids)
     if rosbag is not None:

@@ -13,10 +13,14 @@ from pathlib import Path
 import numpy as np
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+def positive_int(text: str) -> int:
+    """argparse type: a whole number > 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number > 0, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
     return value
 
 
@@ -136,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     check = dataset.add_parser("check", help="validate a KITTI-style dataset folder")
     check.add_argument("root", help="dataset folder (velodyne/, label_2/, optional mask_2/)")
     check.add_argument("--split", default=None, help="split name (<root>/<split>.txt)")
-    check.add_argument("--max-problems", type=_positive_int, default=10)
+    check.add_argument("--max-problems", type=positive_int, default=10)
     add_dataset_config_arguments(check)
     check.set_defaults(func=dataset_check)
 

@@ -688,15 +688,17 @@ def _to_tuple(value):
 
 def config_diff(a: Config, b: Config) -> dict[str, tuple[Any, Any]]:
     """The fields where ``a`` and ``b`` differ, as ``{"section.field": (a's, b's)}``."""
-    flat_a, flat_b = _flatten(a.to_dict()), _flatten(b.to_dict())
+    flat_a, flat_b = flatten_dict(a.to_dict()), flatten_dict(b.to_dict())
     return {k: (flat_a[k], flat_b[k]) for k in flat_a if flat_a[k] != flat_b[k]}
 
 
-def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+def flatten_dict(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested dicts as one level with dotted keys: ``{"grid": {"cell_size": 0.1}}`` ->
+    ``{"grid.cell_size": 0.1}``."""
     out = {}
     for name, value in d.items():
         if isinstance(value, dict):
-            out.update(_flatten(value, f"{prefix}{name}."))
+            out.update(flatten_dict(value, f"{prefix}{name}."))
         else:
             out[prefix + name] = value
     return out

@@ -1,7 +1,10 @@
 """KITTI and ROS2-bag export: exact round trips, splits, and resuming after a kill."""
 
+import dataclasses
 import filecmp
+import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -12,9 +15,11 @@ import numpy as np
 import pytest
 from indoorbev_sim import export as export_mod
 from indoorbev_sim import show
+from indoorbev_sim.cli import main
 
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
+from indoorbev_jax.rosbag import BagError
 
 CFG = Config.tiny()  # the CLI's --preset tiny
 FRAMES, SEED = 20, 5  # 10 scenes of 2 frames: train, val and test all present
@@ -178,3 +183,103 @@ def test_sequence_frames_follow_the_motion(exported):
                 np.testing.assert_allclose(world, expect, atol=1e-4)
                 checked += 1
     assert checked > 0
+
+
+def _tree(root):
+    """{relative path: bytes} of every file under root."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+
+def test_export_refuses_dataset_files_without_export_json(exported, tmp_path):
+    root, _, _ = exported
+    # A copy of an export whose export.json is gone: another seed must not adopt its frames.
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    (copy / "export.json").unlink()
+    before = _tree(copy)
+    with pytest.raises(export_mod.ExportError, match="copy: holds velodyne/ ") as e:
+        export_mod.export(copy, FRAMES, SEED + 1, CFG, progress=False)
+    assert f"label_2/ ({FRAMES} files)" in str(e.value) and "train.txt" in str(e.value)
+    assert "another --out" in str(e.value) and "remove" not in str(e.value)
+    # An `indoorbev predict` output folder: labels and masks, no velodyne, no export.json.
+    pred = tmp_path / "pred"
+    for sub in ("label_2", "mask_2"):
+        shutil.copytree(root / sub, pred / sub)
+    (pred / "predict.json").write_text("{}")
+    before_pred = _tree(pred)
+    with pytest.raises(export_mod.ExportError, match=r"pred: holds label_2/ \(20 files\), mask_2/"):
+        export_mod.export(pred, 2, SEED, CFG, progress=False)
+    assert _tree(copy) == before and _tree(pred) == before_pred  # nothing written
+
+
+def test_bad_options_fail_before_any_frame(cache, tmp_path):
+    not_a_bag = tmp_path / "notes"
+    not_a_bag.mkdir()
+    (not_a_bag / "readme.txt").write_text("not a bag")
+    out = tmp_path / "out"
+    with pytest.raises(BagError, match="notes: exists and is not a bag"):
+        export_mod.export(out, 4, SEED, CFG, rosbag=not_a_bag, progress=False)
+    assert not out.exists()
+    assert [p.name for p in not_a_bag.iterdir()] == ["readme.txt"]
+    with pytest.raises(ValueError, match="throttle: must be a number of seconds >= 0, got -1"):
+        export_mod.export(out, 4, SEED, CFG, progress=False, throttle=-1)
+    assert not out.exists()
+
+
+def test_settings_mismatch_names_each_field(exported, tmp_path):
+    root, _, _ = exported
+    shutil.copy(root / "export.json", tmp_path / "export.json")
+    noisy = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, range_noise=0.5))
+    with pytest.raises(export_mod.ExportError) as e:
+        export_mod.export(tmp_path, FRAMES, SEED + 1, noisy, progress=False)
+    msg = str(e.value)
+    assert str(tmp_path / "export.json") in msg
+    assert f"config.sim.range_noise: {CFG.sim.range_noise!r} (saved) vs 0.5 (given)" in msg
+    assert f"seed: {SEED} (saved) vs {SEED + 1} (given)" in msg
+    assert "frames" not in msg.split("other settings:")[1]  # only the fields that differ
+
+
+def test_resume_progress_counts_only_new_frames(exported, tmp_path, monkeypatch, capsys):
+    import tqdm
+
+    root, _, _ = exported
+    out = tmp_path / "resume"
+    shutil.copytree(root, out)
+    kitti.frame_paths(out, "000019")["labels"].unlink()  # scene 9 (frames 18, 19) is redone
+    started = []
+
+    class Bar(tqdm.tqdm):
+        def __init__(self, *args, **kwargs):
+            started.append(kwargs.get("initial", 0))
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(tqdm, "tqdm", Bar)
+    export_mod.export(out, FRAMES, SEED, CFG, progress=True)
+    assert started == [FRAMES - 2]
+    err = capsys.readouterr().err
+    assert err.count("resuming:") == 1 and f"resuming: 18 of {FRAMES} frames already written" in err
+    assert _tree(out) == _tree(root)
+
+
+def test_cli_takes_the_preset_of_export_json(exported, tmp_path, capsys):
+    root, _, _ = exported
+    out = tmp_path / "resume"
+    shutil.copytree(root, out)
+    kitti.frame_paths(out, "000000")["labels"].unlink()
+    args = ["--frames", str(FRAMES), "--seed", str(SEED), "--no-progress", "--cache", ""]
+    assert main(["export", "--out", str(out), *args]) == 0, capsys.readouterr().err
+    assert _tree(out) == _tree(root)
+    assert json.loads((out / "export.json").read_text())["config"]["name"] == "tiny"
+    # show: the same pictures as with the tiny config (the paper grid would not fit the masks).
+    ids = ["000000", "000019"]
+    assert main(["show", str(root), "--out", str(tmp_path / "cli"), "--ids", *ids]) == 0
+    ref = show.show(root, tmp_path / "ref", CFG, ids)
+    for path in ref:
+        assert (tmp_path / "cli" / path.name).read_bytes() == path.read_bytes()
+
+
+def test_show_refuses_a_missing_folder(tmp_path, capsys):
+    missing = tmp_path / "no_such_export"
+    assert main(["show", str(missing), "--out", str(tmp_path / "pics")]) == 2
+    assert f"{missing}: no such dataset folder" in capsys.readouterr().err
+    assert not (tmp_path / "pics").exists()

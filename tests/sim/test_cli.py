@@ -1,0 +1,14 @@
+"""``indoorbev-sim`` argument checks that need no simulated frames."""
+
+import pytest
+from indoorbev_sim.cli import main
+
+
+@pytest.mark.parametrize(
+    "flag, value", [("--batch", "0"), ("--batch", "-1"), ("--frames", "0"), ("--frames", "-3")]
+)
+def test_check_needs_positive_frames_and_batch(flag, value, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["check", "--preset", "tiny", "--cache", "", flag, value])
+    assert e.value.code == 2
+    assert f"argument {flag}: must be > 0, got {value}" in capsys.readouterr().err
