@@ -19,7 +19,7 @@ import os
 import sys
 from pathlib import Path
 
-from indoorbev_jax.cli import positive_int
+from indoorbev_jax.cli import positive_float, positive_int
 from indoorbev_jax.config import Config
 
 
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         "publish", help="publish simulated PointCloud2 frames and ground-truth markers"
     )
     pb.add_argument("--preset", default="small", help="config preset (paper, small, tiny)")
-    pb.add_argument("--rate", type=float, default=10.0, help="frames per second")
+    pb.add_argument("--rate", type=positive_float, default=10.0, help="frames per second")
     pb.add_argument("--frames", type=int, default=0, help="frames to publish (0: until Ctrl-C)")
     pb.add_argument("--topic", default="/lidar/points", help="PointCloud2 topic")
     pb.add_argument("--objects-topic", default="/lidar/objects", help="ground-truth MarkerArray")

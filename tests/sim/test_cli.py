@@ -12,3 +12,11 @@ def test_check_needs_positive_frames_and_batch(flag, value, capsys):
         main(["check", "--preset", "tiny", "--cache", "", flag, value])
     assert e.value.code == 2
     assert f"argument {flag}: must be > 0, got {value}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "nan", "inf"])
+def test_publish_needs_a_positive_rate(value, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["ros2", "publish", "--rate", value])
+    assert e.value.code == 2
+    assert f"argument --rate: must be a finite number > 0, got {value}" in capsys.readouterr().err
