@@ -174,6 +174,10 @@ def test_gt_sampling_pastes_collision_free_objects_with_their_points():
     batch = jax.tree.map(lambda a: a[None], frame)
     db = aug.build_object_database(batch, GRID, max_points=64)
     assert db.classes.tolist() == [0, 1, 6]
+    # An object cut by the grid's edge stays out of the database.
+    masks = batch.targets.masks.at[0, 1, :, 0].set(True)
+    cut = batch.replace(targets=batch.targets.replace(masks=masks))
+    assert aug.build_object_database(cut, GRID, max_points=64).classes.tolist() == [0, 6]
     assert (np.asarray(db.point_valid).sum(1) == 64).all()
     cfg = dataclasses.replace(OFF, gt_sampling=3, gt_sampling_attempts=8)
     out = aug.gt_sampling(jax.random.key(4), frame, db, GRID, cfg)
@@ -200,3 +204,53 @@ def test_full_chain_is_deterministic_and_vmaps():
         one = aug.augment(keys[i], jax.tree.map(lambda x, i=i: x[i], batch), GRID, CFG.augment)
         np.testing.assert_allclose(one.points, a.points[i], atol=1e-5)
         np.testing.assert_array_equal(one.targets.masks, a.targets.masks[i])
+
+
+def test_objects_moved_out_of_sight_leave_the_targets():
+    """After the chain, every target has its centre in the grid, a footprint and a point;
+    a rotation carries the corner object out in some draws, never the central ones."""
+    frame = make_frame()
+    t = frame.targets
+    # Object 0 moves to the corner, 6.2 m from the sensor: most rotations take it out.
+    shift = jnp.array([4.4 - 1.5, 4.4 - 1.0, 0.0])
+    pts = frame.points
+    in_0 = aug.points_in_boxes(pts, t.pos, t.dims, t.yaw, t.valid)[0] & frame.point_valid
+    pts = jnp.where(in_0[:, None], pts + jnp.append(shift, 0.0), pts)
+    labels = ObjectLabels(classes=np.asarray(t.classes[:3]), dims=np.asarray(t.dims[:3]),
+                          pos=np.asarray(t.pos[:3]) + np.stack([shift, 0 * shift, 0 * shift]),
+                          yaw=np.asarray(t.yaw[:3]), occlusion=[0, 0, 0])  # fmt: skip
+    targets = jax.tree.map(jnp.asarray, make_targets(labels, GRID, t.valid.shape[0]))
+    frame = Batch(points=pts, point_valid=frame.point_valid, targets=targets)
+    cfg = dataclasses.replace(OFF, rotation=float(np.pi))
+    keys = jax.random.split(jax.random.key(5), 64)
+    out = jax.vmap(lambda k: aug.augment(k, frame, GRID, cfg))(keys)
+    valid = np.asarray(out.targets.valid)
+    assert valid[:, 1:3].all() and 8 <= (~valid[:, 0]).sum() <= 56
+    pos = np.asarray(out.targets.pos)
+    inside = (np.abs(pos[..., 0]) <= 5.0) & (np.abs(pos[..., 1]) <= 5.0)
+    assert inside[valid].all()
+    assert np.asarray(out.targets.masks).any((2, 3))[valid].all()
+    seen = jax.vmap(lambda f: aug._object_points(f).any(-1))(out)
+    assert np.asarray(seen)[valid].all()
+    assert not np.asarray(out.targets.masks)[~valid].any()  # dropped: no footprint left
+    check_consistent(jax.tree.map(lambda x: x[0], out))
+
+
+def test_intensity_drop_is_independent_of_point_drop():
+    frame = make_frame()
+    cfg = dataclasses.replace(OFF, point_drop_prob=0.05, intensity_drop_prob=0.05)
+    keys = jax.random.split(jax.random.key(6), 1000)
+    out = jax.vmap(lambda k: aug.point_noise(k, frame, GRID, cfg))(keys)
+    no_intensity = np.asarray((out.points[:, :600, 3] == 0).all(1))
+    slot0_dropped = ~np.asarray(out.point_valid[:, 0])
+    assert 25 <= no_intensity.sum() <= 80  # Binomial(1000, 0.05)
+    # P(drop | no intensity) is 0.05; with the two draws on one key it was 1.
+    assert slot0_dropped[no_intensity].mean() < 0.3
+
+
+def test_integer_probabilities_work():
+    """A hand-edited config.json may hold 0 or 1 for a probability."""
+    cfg = AugmentConfig(**{**dataclasses.asdict(OFF), "range_dropout_prob": 0,
+                           "intensity_drop_prob": 1, "flip_prob": 1})  # fmt: skip
+    out = aug.augment(jax.random.key(0), make_frame(), GRID, cfg)
+    assert (np.asarray(out.points[:, 3]) == 0).all()

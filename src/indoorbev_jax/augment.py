@@ -21,6 +21,8 @@ from indoorbev_jax.types import Batch, Targets
 
 # Points this close outside a box still belong to it (lidar hits lie on its surface).
 BOX_MARGIN = 0.03
+# fold_in constant of the intensity-drop draw (see point_noise).
+INTENSITY_FOLD = 1_000_003
 
 
 def _rot(theta: jax.Array) -> jax.Array:
@@ -130,8 +132,10 @@ def point_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConf
         clutter = jax.random.uniform(k_noise, (n_noise, 4), minval=lo, maxval=hi)
         points, valid = _fill_free_slots(points, valid, clutter, jnp.ones(n_noise, bool))
     if cfg.intensity_drop_prob:
-        # A folded key leaves the other draws, and so earlier runs' data, unchanged.
-        no_intensity = jax.random.bernoulli(jax.random.fold_in(key, 1), cfg.intensity_drop_prob)
+        # A folded key leaves the other draws unchanged. Not a small constant: fold_in(key, i)
+        # equals split(key, n)[i] for i < n under partitionable threefry, i.e. k_drop for 1.
+        k_intensity = jax.random.fold_in(key, INTENSITY_FOLD)
+        no_intensity = jax.random.bernoulli(k_intensity, cfg.intensity_drop_prob)
         points = points.at[:, 3].multiply(jnp.where(no_intensity, 0.0, 1.0))
     if cfg.shuffle_points:
         # One sort by random 32-bit keys (jax.random.permutation sorts twice to break
@@ -248,7 +252,8 @@ def _local_patch_centres(size: int, cell: float) -> jax.Array:
 def build_object_database(
     batch: Batch, grid: GridConfig, max_points: int = 256, patch_cells: int | None = None
 ) -> ObjectDatabase:
-    """Cuts every valid object (its points and true footprint) out of a batch of frames.
+    """Cuts every valid object (its points and true footprint) out of a batch of frames,
+    except those whose footprint touches the grid's edge (cut off in their frame).
 
     Args:
       batch: a batch (leading axis B) of frames.
@@ -257,7 +262,7 @@ def build_object_database(
       patch_cells: S, side of the local footprint patch in cells (default: 4 m worth).
 
     Returns:
-      An ``ObjectDatabase`` of the D valid objects of the batch.
+      An ``ObjectDatabase`` of the D valid objects of the batch clear of the edge.
     """
     s = patch_cells or int(np.ceil(4.0 / grid.cell_size))
     local_centres = _local_patch_centres(s, grid.cell_size)  # [S, S, 2]
@@ -279,7 +284,13 @@ def build_object_database(
         return jnp.where(keep[..., None], local, 0.0), keep, fp
 
     pts, keep, fps = jax.jit(jax.vmap(one_frame))(batch.points, batch.point_valid, batch.targets)
-    sel = np.asarray(batch.targets.valid).reshape(-1)
+    # Objects cut by the grid edge carry a clipped footprint and lost points: pasted
+    # elsewhere, the cut would show mid-grid.
+    m = np.asarray(batch.targets.masks)
+    edge = (
+        m[..., 0, :].any(-1) | m[..., -1, :].any(-1) | m[..., :, 0].any(-1) | m[..., :, -1].any(-1)
+    )
+    sel = (np.asarray(batch.targets.valid) & ~edge).reshape(-1)
     flat = lambda a: jnp.asarray(np.asarray(a).reshape(-1, *a.shape[2:])[sel])  # noqa: E731
     t = batch.targets
     return ObjectDatabase(
@@ -377,12 +388,37 @@ def augment(
     k_gt, k_box, k_glob, k_mask, k_pts = jax.random.split(key, 5)
     if database is not None and cfg.gt_sampling:
         frame = gt_sampling(k_gt, frame, database, grid, cfg)
+    had_points = _object_points(frame).sum(-1) > 0
     if cfg.box_noise_prob:
         frame = box_noise(k_box, frame, grid, cfg)
     frame = global_transform(k_glob, frame, grid, cfg)
     if cfg.mask_perturb_prob:
         frame = mask_perturbation(k_mask, frame, grid, cfg)
-    return point_noise(k_pts, frame, grid, cfg)
+    frame = point_noise(k_pts, frame, grid, cfg)
+    return drop_lost_objects(frame, had_points, grid)
+
+
+def _object_points(frame: Batch) -> jax.Array:
+    """bool [M, N]: valid point n lies in the box of valid object m."""
+    t = frame.targets
+    inside = points_in_boxes(frame.points, t.pos, t.dims, t.yaw, t.valid)
+    return inside & frame.point_valid[None, :]
+
+
+def drop_lost_objects(frame: Batch, had_points: jax.Array, grid: GridConfig) -> Batch:
+    """Targets an augmentation moved out of sight leave the frame: as the simulator labels
+    (``sim/labels.py``), an object stays only with its centre inside the grid, a non-empty
+    footprint and, when it had lidar points before (``had_points`` [M]), at least one
+    still; a rotation near a corner would otherwise leave targets with nothing to see."""
+    t = frame.targets
+    x, y = t.pos[:, 0], t.pos[:, 1]
+    centre_in = (
+        (x >= grid.x_range[0]) & (x <= grid.x_range[1])
+        & (y >= grid.y_range[0]) & (y <= grid.y_range[1])
+    )  # fmt: skip
+    seen = _object_points(frame).any(-1) | ~had_points
+    valid = t.valid & centre_in & t.masks.any((1, 2)) & seen
+    return _finish(frame.points, frame.point_valid, t.replace(valid=valid), grid)
 
 
 def augment_batch(

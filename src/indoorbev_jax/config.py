@@ -416,6 +416,8 @@ class AugmentConfig:
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 _fail(f"augment.{name}", f"must lie in [0, 1], got {v!r}")
+            # An int 0 or 1 (a hand-edited config.json) would fail jax.random.bernoulli.
+            object.__setattr__(self, name, float(v))
         for name in (
             "rotation",
             "jitter_std",
