@@ -19,7 +19,13 @@ import os
 import sys
 from pathlib import Path
 
-from indoorbev_jax.cli import positive_float, positive_int
+from indoorbev_jax.cli import (
+    INTERRUPTED,
+    exit_with,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
 from indoorbev_jax.config import Config
 
 
@@ -91,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     pb.add_argument("--preset", default="small", help="config preset (paper, small, tiny)")
     pb.add_argument("--rate", type=positive_float, default=10.0, help="frames per second")
-    pb.add_argument("--frames", type=int, default=0, help="frames to publish (0: until Ctrl-C)")
+    pb.add_argument("--frames", type=nonnegative_int, default=0,
+                    help="frames to publish (0: until Ctrl-C)")  # fmt: skip
     pb.add_argument("--topic", default="/lidar/points", help="PointCloud2 topic")
     pb.add_argument("--objects-topic", default="/lidar/objects", help="ground-truth MarkerArray")
     pb.add_argument("--frame-id", default="lidar")
@@ -99,9 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     pb.add_argument("--split", default="test", choices=("train", "val", "test"))
     pb.add_argument("--record", default=None, help="record what is published into this bag")
     pb.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"))
-    pb.add_argument("--wait-subscribers", type=int, default=0,
+    pb.add_argument("--wait-subscribers", type=nonnegative_int, default=0,
                     help="wait for N subscribers on --topic before the first frame")  # fmt: skip
-    pb.add_argument("--wait-timeout", type=float, default=60.0)
+    pb.add_argument("--wait-timeout", type=positive_float, default=60.0, help="seconds")
     pb.add_argument("--noise-free", action="store_true", help="no range noise or dropout")
     pb.add_argument("--cache", default=default_cache, help="persistent XLA cache folder")
     pb.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
@@ -137,6 +144,9 @@ def main(argv: list[str] | None = None) -> int:
             except RosUnavailable as e:
                 print(f"indoorbev-sim: error: {e}", file=sys.stderr)
                 return 2
+            except KeyboardInterrupt:  # before the node runs; afterwards it stops cleanly
+                print("indoorbev-sim: interrupted", file=sys.stderr)
+                return INTERRUPTED
         else:
             from indoorbev_sim.labels import check
 
@@ -148,5 +158,10 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def entry() -> None:
+    """The ``indoorbev-sim`` console script (Ctrl-C: status 130, no traceback)."""
+    exit_with(main, "indoorbev-sim")
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

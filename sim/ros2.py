@@ -12,6 +12,7 @@ publishing loop, so the rate holds whenever generation keeps up (it says when it
 
 from __future__ import annotations
 
+import math
 import queue
 import threading
 import time
@@ -38,6 +39,29 @@ def scene_frames(config: Config, seed: int, split: str = "test") -> Iterator:
         for t in range(config.sim.frames_per_sequence):
             points, labels = scene_frame(batch, info, t)
             yield points.astype(np.float32), labels
+
+
+def check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_timeout) -> None:
+    """A ``ValueError`` naming the first setting of ``publish`` that cannot work, before
+    the node starts."""
+    from indoorbev_jax.ros2 import check_topic_name
+
+    def number(x) -> bool:
+        return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+    def count(x) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool) and x >= 0
+
+    if not (number(rate) and rate > 0):
+        raise ValueError(f"rate: must be > 0 frames per second, got {rate}")
+    if not count(frames):
+        raise ValueError(f"frames: expected a whole number >= 0 (0: unbounded), got {frames}")
+    check_topic_name(topic, "topic")
+    check_topic_name(objects_topic, "objects_topic")
+    if not count(wait_subscribers):
+        raise ValueError(f"wait_subscribers: expected a whole number >= 0, got {wait_subscribers}")
+    if not (number(wait_timeout) and wait_timeout > 0):
+        raise ValueError(f"wait_timeout: expected seconds > 0, got {wait_timeout}")
 
 
 def publish(
@@ -77,8 +101,7 @@ def publish(
     """
     from indoorbev_jax.ros2 import runtime
 
-    if rate <= 0:
-        raise ValueError(f"rate: must be > 0 frames per second, got {rate}")
+    check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_timeout)
     runtime.require_rclpy()
     if record:
         from indoorbev_jax.ros2.record import ensure_new
@@ -86,17 +109,6 @@ def publish(
         ensure_new(record)
     ts = typestore()
     names = config.data.class_names
-    context, node = runtime.start_node("indoorbev_sim", ros_args)
-    reliable = runtime.qos(True, 5)
-    pub_points = node.create_publisher(runtime.msg_class(POINTCLOUD2), topic, reliable)
-    pub_objects = node.create_publisher(runtime.msg_class(MARKER_ARRAY), objects_topic, reliable)
-    recorder = None
-    if record:
-        from indoorbev_jax.ros2.record import BagRecorder
-
-        recorder = BagRecorder(record, {topic: POINTCLOUD2, objects_topic: MARKER_ARRAY}, ts,
-                               storage)  # fmt: skip
-
     stop = threading.Event()
     ahead: queue.Queue = queue.Queue(maxsize=2 * config.sim.frames_per_sequence)
 
@@ -111,12 +123,23 @@ def publish(
             if stop.is_set():
                 return
 
-    threading.Thread(target=produce, name="indoorbev-sim", daemon=True).start()
     period = 1.0 / rate
     lifetime_ns = round(2e9 * period)
     sent = late = 0
     first = last = 0.0  # monotonic times of the first and last frame
-    try:
+    recorder = None
+    context, node = runtime.start_node("indoorbev_sim", ros_args)
+    try:  # from here on, Ctrl-C still finishes the recording and stops the node
+        reliable = runtime.qos(True, 5)
+        pub_points = node.create_publisher(runtime.msg_class(POINTCLOUD2), topic, reliable)
+        pub_objects = node.create_publisher(runtime.msg_class(MARKER_ARRAY), objects_topic,
+                                            reliable)  # fmt: skip
+        if record:
+            from indoorbev_jax.ros2.record import BagRecorder
+
+            recorder = BagRecorder(record, {topic: POINTCLOUD2, objects_topic: MARKER_ARRAY},
+                                   ts, storage)  # fmt: skip
+        threading.Thread(target=produce, name="indoorbev-sim", daemon=True).start()
         if wait_subscribers:
             deadline = time.monotonic() + wait_timeout
             while pub_points.get_subscription_count() < wait_subscribers:
@@ -160,10 +183,15 @@ def publish(
     except KeyboardInterrupt:
         pass
     finally:
-        stop.set()
-        if recorder is not None:
-            print(f"indoorbev-sim ros2 publish: recorded into {recorder.close()}", flush=True)
-        runtime.stop_node(node, context)
+        held = "indoorbev-sim ros2 publish: stopping" + (
+            f"; finishing the recording {record} (kill -9 abandons it)" if recorder else ""
+        )
+        with runtime.signals_held(held):
+            stop.set()
+            if recorder is not None:
+                print(f"indoorbev-sim ros2 publish: recorded into {recorder.close()}",
+                      flush=True)  # fmt: skip
+            runtime.stop_node(node, context)
     achieved = (sent - 1) / (last - first) if sent > 1 and last > first else 0.0
     summary = {"frames": sent, "rate_hz": round(achieved, 2), "late": late}
     print(f"indoorbev-sim ros2 publish: {summary}", flush=True)

@@ -38,6 +38,28 @@ def test_model_file_round_trip_and_bad_file(model_file, tmp_path):
     (tmp_path / "bad.msgpack").write_bytes(b"not a model")
     with pytest.raises(ValueError, match=r"bad\.msgpack: not an indoorbev_jax model file"):
         P.load_model(tmp_path / "bad.msgpack")
+    # A folder that is no run directory is said so (not a bare "No such file").
+    with pytest.raises(FileNotFoundError, match="not a training run directory"):
+        P.load_model(tmp_path)
+    (tmp_path / "config.json").write_text("{not json")
+    with pytest.raises(ValueError, match=r"config\.json: not valid JSON"):
+        P.load_model(tmp_path)
+
+
+def test_write_bag_clears_only_its_own_leftovers(tmp_path):
+    from indoorbev_jax.rosbag import write_bag
+
+    frame = (10**9, "lidar", np.zeros((3, 4), np.float32), kitti.ObjectLabels.empty())
+    bag = tmp_path / "out_bag"
+    (tmp_path / "out_bag.partial" / "out_bag").mkdir(parents=True)  # a write cut short
+    assert write_bag(bag, [frame], CFG.data.class_names, "/points", "/objects") == 1
+    assert bag.is_dir() and not (tmp_path / "out_bag.partial").exists()
+    other = tmp_path / "b.partial" / "notes.txt"
+    other.parent.mkdir()
+    other.write_text("mine")
+    with pytest.raises(FileExistsError, match=r"b\.partial: holds files"):
+        write_bag(tmp_path / "b", [frame], CFG.data.class_names, "/points", "/objects")
+    assert other.read_text() == "mine"
 
 
 def _cloud(fields, dtype, points, bigendian=False):

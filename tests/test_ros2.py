@@ -1,5 +1,6 @@
 """Live ROS 2 nodes: message builders, bad input, and the sim -> detect loop over loopback."""
 
+import argparse
 import dataclasses
 import math
 import os
@@ -152,7 +153,20 @@ def test_detector_bad_input(detector):
     _assert_empty(result)
     result = detector.process(b"\x00\x01\x00\x00garbage")
     assert result.warning.startswith("cannot decode the PointCloud2")
-    _assert_empty(result, frame="")
+    assert "nothing published" in result.warning and result.outputs == {}
+    # A cloud cut short: its header still places the empty outputs.
+    raw = _raw_cloud(_scan(20), stamp=3 * 10**9 + 11, frame="cut_lidar")
+    assert M.header_from_cdr(raw) == (3 * 10**9 + 11, "cut_lidar")
+    result = detector.process(raw[:-100])
+    assert result.warning.startswith("cloud 'cut_lidar' @ 3.000s: cannot decode the PointCloud2")
+    _assert_empty(result, frame="cut_lidar")
+    msgs = _decode(result)
+    headers = [
+        msgs["detections"].header,
+        msgs["occupancy"].header,
+        msgs["markers"].markers[0].header,
+    ]
+    assert {M.stamp_ns(argparse.Namespace(header=h)) for h in headers} == {3 * 10**9 + 11}
     # Some NaN rows: by default the cloud gets a warning and empty outputs; with
     # skip_nonfinite (organized clouds mark missing returns so) those points are skipped and
     # the outputs equal those of the clean cloud.
@@ -182,6 +196,17 @@ def test_recorder_round_trip_and_missing_rclpy(tmp_path, monkeypatch):
         assert read_bag(bag) == {"/a": [(2, raw), (3, raw[:-4] + b"abcd")]}
     with pytest.raises(FileExistsError, match="already exists"):
         BagRecorder(tmp_path / "mcap", {"/a": POINTCLOUD2}, TS)
+    # What an interrupted recording left is the user's: never silently deleted.
+    left = tmp_path / "cut.partial" / "cut" / "cut_0.mcap"
+    left.parent.mkdir(parents=True)
+    left.write_bytes(b"recorded")
+    with pytest.raises(FileExistsError, match=r"cut\.partial: left by an interrupted recording"):
+        BagRecorder(tmp_path / "cut", {"/a": POINTCLOUD2}, TS, "mcap")
+    assert left.read_bytes() == b"recorded" and not (tmp_path / "cut").exists()
+    # A recorder that cannot open leaves nothing behind either.
+    with pytest.raises(RuntimeError, match="recording failed"):
+        BagRecorder(tmp_path / "bad", {"/a": "no_pkg/msg/NoSuchType"}, TS)
+    assert not (tmp_path / "bad.partial").exists()
     monkeypatch.setitem(sys.modules, "rclpy", None)  # as if the ros extra were missing
     with pytest.raises(RosUnavailable, match=r"pip install -e \.\[ros\]"):
         require_rclpy()
@@ -336,3 +361,134 @@ def test_speed_hint_only_when_views_outpace_the_sensor(detector):
     assert hint.startswith("inference takes 217 ms per cloud with 8 test-time views")
     assert "--views identity" in hint
     assert speed_hint(216.6, tuple(VIEWS), sensor_hz=4.0) is None
+
+
+# Names from the ROS 2 design article "Topic and Service name mapping to DDS", as rcl and
+# rmw decide them once expanded (they allow "__", which the article once banned).
+VALID_TOPICS = ["foo", "abc123", "_foo", "Foo", "BAR", "~", "foo/bar", "~/foo", "foo/_bar",
+                "foo_/bar", "foo_", "/livox/lidar", "foo__bar", "{node}/x", "~/{node}_raw",
+                "a" * 246]  # fmt: skip
+INVALID_TOPICS = ["123abc", "123", "foo bar", "", "foo//bar", "/~", "~foo", "foo~", "foo~/bar",
+                  "foo/~bar", "foo/~/bar", "foo/", "/", "foo/{bar", "foo}", "/a/2b", "/a-b",
+                  "/{1}/x", "{foo}_bar", "foo/{ping}/bar", "a" * 247]  # fmt: skip
+
+
+def test_topic_names_follow_the_ros2_rules():
+    from indoorbev_jax.ros2 import check_topic_name, topic_name_problem
+
+    assert [n for n in VALID_TOPICS if topic_name_problem(n) is not None] == []
+    assert [n for n in INVALID_TOPICS if topic_name_problem(n) is None] == []
+    with pytest.raises(ValueError, match="topic: '/a b' is not a valid ROS 2 topic name"):
+        check_topic_name("/a b", "topic")
+    try:  # where the ros extra is installed, rclpy's own checks agree
+        from rclpy.exceptions import NameValidationException
+        from rclpy.expand_topic_name import expand_topic_name
+        from rclpy.validate_full_topic_name import validate_full_topic_name
+        from rclpy.validate_topic_name import validate_topic_name
+    except ImportError:
+        return
+    for name in VALID_TOPICS + INVALID_TOPICS:
+        try:  # what create_publisher does with a name
+            validate_topic_name(name)
+            validate_full_topic_name(expand_topic_name(name, "indoorbev_detect", "/"))
+            valid = True
+        except (NameValidationException, ValueError):  # ValueError: unknown substitution
+            valid = False
+        assert valid == (name in VALID_TOPICS), name
+
+
+def test_node_settings_fail_before_the_node_starts(monkeypatch, capsys):
+    """Settings that rclpy would refuse only after the model's warm-up (or that would run
+    silently wrong) are refused first, naming the setting; without rclpy even."""
+    from indoorbev_sim.ros2 import publish
+
+    from indoorbev_jax import cli
+    from indoorbev_jax.ros2 import detect
+
+    monkeypatch.setitem(sys.modules, "rclpy", None)
+    for bad, match in [
+        ({"topic": "/livox lidar"}, "topic: '/livox lidar' is not a valid"),
+        ({"out_ns": "/1bev"}, "out_ns: '/1bev/detections' is not a valid"),
+        ({"max_frames": -1}, "max_frames: expected a whole number >= 0"),
+        ({"log_every": 0.0}, "log_every: expected seconds > 0"),
+        ({"log_every": float("nan")}, "log_every: expected seconds > 0"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            detect.run_detect_node("no-such-model", **bad)
+    with pytest.raises(RosUnavailable):  # good settings get as far as rclpy
+        detect.run_detect_node("no-such-model", topic="~/points", out_ns="bev")
+    for bad, match in [
+        ({"frames": -1}, "frames: expected a whole number >= 0"),
+        ({"topic": "points/"}, "topic: 'points/' is not a valid"),
+        ({"objects_topic": "/2d"}, "objects_topic: '/2d' is not a valid"),
+        ({"wait_subscribers": -2}, "wait_subscribers: expected a whole number >= 0"),
+        ({"wait_timeout": float("inf")}, "wait_timeout: expected seconds > 0"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            publish(CFG, **bad)
+    # The command lines refuse the same before anything loads.
+    for argv, flag in [
+        (["ros2", "detect", "--checkpoint", "m", "--max-frames", "-1"], "--max-frames"),
+        (["ros2", "detect", "--checkpoint", "m", "--log-every", "0"], "--log-every"),
+    ]:
+        with pytest.raises(SystemExit):
+            cli.main(argv)
+        assert f"argument {flag}: must be" in capsys.readouterr().err
+
+    # Ctrl-C before the node runs (the warm-up takes seconds) exits quietly with 130.
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(detect, "run_detect_node", interrupted)
+    assert cli.main(["ros2", "detect", "--checkpoint", "m"]) == 130
+    assert capsys.readouterr().err == "indoorbev ros2 detect: interrupted\n"
+
+
+def test_shutdown_work_holds_a_second_ctrl_c(capsys):
+    """Closing a recording must not be cut short by an impatient Ctrl-C: rosbags commits
+    a sqlite3 bag only when it is closed."""
+    from indoorbev_jax.ros2.runtime import signals_held
+
+    before = signal.getsignal(signal.SIGINT)
+    steps = []
+    with signals_held("finishing the recording"):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.2)  # the handler runs in the main thread between bytecodes
+        steps.append("closed")
+    assert steps == ["closed"]
+    assert capsys.readouterr().err == "finishing the recording\n"
+    assert signal.getsignal(signal.SIGINT) is before
+
+
+def test_silence_hint_names_the_likely_qos_cause():
+    from indoorbev_jax.ros2.detect import silence_hint
+
+    assert silence_hint(3, 1, "/livox/lidar", False) is None  # clouds arrive
+    assert silence_hint(0, 0, "/livox/lidar", False) is None  # nobody publishes yet
+    hint = silence_hint(0, 2, "/livox/lidar", False)
+    assert hint.startswith("/livox/lidar: 2 publisher(s) but no cloud arrived in 5 s")
+    assert "best-effort" in hint and "--reliable" in hint
+    assert "needs a reliable publisher" in silence_hint(0, 1, "/livox/lidar", True)
+
+
+def test_console_scripts_exit_130_on_ctrl_c(monkeypatch, capsys):
+    """Ctrl-C gives one line and status 130, leaving at once (os._exit): a normal shutdown
+    while XLA still compiles on its threads crashed the interpreter."""
+    from indoorbev_jax import cli
+
+    exits = []
+
+    def fake_exit(status):
+        exits.append(status)
+        raise SystemExit(status)
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli.os, "_exit", fake_exit)
+    with pytest.raises(SystemExit):
+        cli.exit_with(interrupted, "indoorbev")
+    assert exits == [130] and capsys.readouterr().err == "indoorbev: interrupted\n"
+    with pytest.raises(SystemExit) as done:  # other statuses exit normally
+        cli.exit_with(lambda: 2, "indoorbev")
+    assert done.value.code == 2 and exits == [130]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -33,6 +34,17 @@ def positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a whole number > 0, got {text!r}") from None
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return value
+
+
+def nonnegative_int(text: str) -> int:
+    """argparse type: a whole number >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
     return value
 
 
@@ -197,13 +209,17 @@ def build_parser() -> argparse.ArgumentParser:
         "--record", default=None, help="record inputs and outputs into this bag folder"
     )
     det.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"))
-    det.add_argument("--log-every", type=float, default=5.0, help="seconds between summaries")
+    det.add_argument(
+        "--log-every", type=positive_float, default=5.0, help="seconds between summaries"
+    )
     det.add_argument(
         "--skip-nonfinite",
         action="store_true",
         help="process the finite points of clouds with NaN/Inf points (default: empty output)",
     )
-    det.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0: never)")
+    det.add_argument(
+        "--max-frames", type=nonnegative_int, default=0, help="stop after N frames (0: never)"
+    )
     _add_intensity(det)
     add_views_argument(det, "the model file's")
     det.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
@@ -235,6 +251,9 @@ def run_ros2_detect(args: argparse.Namespace) -> int:
     except (RosUnavailable, OSError, ValueError) as e:
         print(f"indoorbev ros2 detect: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # before the node runs (warm-up); afterwards it stops cleanly
+        print("indoorbev ros2 detect: interrupted", file=sys.stderr)
+        return INTERRUPTED
     return 0
 
 
@@ -265,5 +284,33 @@ def main(argv: list[str] | None = None) -> int:
     return args.func(args)
 
 
+INTERRUPTED = 130  # the shell's status for a command stopped by Ctrl-C
+
+
+def exit_with(main_fn, prog: str):
+    """Runs a console command's ``main`` and exits with its status.
+
+    Ctrl-C exits with 130 and one line instead of a traceback, and leaves at once: XLA may
+    still be compiling on its own threads, and a normal interpreter shutdown under them
+    crashes (a segmentation fault after the warm-up of ``ros2 detect`` was cut short).
+    Output files are written atomically, so nothing half-written is left under its name.
+    """
+    try:
+        status = main_fn()
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        status = INTERRUPTED
+    if status == INTERRUPTED:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(INTERRUPTED)
+    sys.exit(status)
+
+
+def entry() -> None:
+    """The ``indoorbev`` console script."""
+    exit_with(main, "indoorbev")
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

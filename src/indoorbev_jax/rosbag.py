@@ -473,7 +473,12 @@ def write_bag(
     check_bag_target(bag, (points_topic, objects_topic))
     # rosbags names the storage file after the bag folder: write <bag>.partial/<name>.
     partial = bag.with_name(bag.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
+    if partial.is_dir() and any(p.name != bag.name for p in partial.iterdir()):
+        raise FileExistsError(
+            f"{partial}: holds files that an interrupted write of {bag} does not leave; "
+            "move or delete it"
+        )
+    shutil.rmtree(partial, ignore_errors=True)  # an earlier write of this bag, cut short
     partial.mkdir(parents=True)
     tmp = partial / bag.name
     count = 0

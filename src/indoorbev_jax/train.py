@@ -800,7 +800,16 @@ def train_and_evaluate(
 def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config, Any]:
     """(config, params) of a run directory's ``best`` (or ``latest``) checkpoint."""
     workdir = Path(workdir)
-    config = Config.from_dict(json.loads((workdir / "config.json").read_text()))
+    config_file = workdir / "config.json"
+    if not config_file.is_file():
+        raise FileNotFoundError(
+            f"{workdir}: not a training run directory (no config.json); expected the --workdir "
+            "of experiments/train.py or an exported model file (.msgpack)"
+        )
+    try:
+        config = Config.from_dict(json.loads(config_file.read_text()))
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{config_file}: not valid JSON ({e})") from None
     template = init_state(config, jax.random.key(0))
     checkpoints = Checkpoints(workdir, config.train.keep_checkpoints)
     manager = checkpoints.best if which == "best" and checkpoints.best.all_steps() else None

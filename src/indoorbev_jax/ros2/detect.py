@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import statistics
 import threading
 import time
@@ -52,7 +53,8 @@ class Result:
     Attributes:
       stamp: the cloud's header stamp (ns), carried to every output.
       frame: the cloud's frame id, carried to every output.
-      outputs: {output name: serialized message} for every name of ``OUTPUTS``.
+      outputs: {output name: serialized message} for every name of ``OUTPUTS``; empty
+        when not even the cloud's header is readable (nothing to publish).
       labels: the predicted objects (empty for unusable input).
       warning: why the cloud was (partly) unusable, or None.
       infer_ms: model + panoptic inference time; 0 when the model did not run.
@@ -114,7 +116,14 @@ class Detector:
         try:
             msg = self.ts.deserialize_cdr(bytes(raw), POINTCLOUD2)
         except Exception as e:  # noqa: BLE001 - any decoding failure is bad input
-            return self._empty(0, "", f"cannot decode the PointCloud2 ({type(e).__name__}: {e})")
+            why = f"cannot decode the PointCloud2 ({type(e).__name__}: {e})"
+            known = M.header_from_cdr(raw)
+            if known is None:  # no stamp, no frame: outputs would be placed nowhere
+                labels = kitti.ObjectLabels.empty(with_scores=True)
+                return Result(0, "", {}, labels, f"{why}; not even its header is readable, "
+                              "nothing published", 0.0)  # fmt: skip
+            stamp, frame = known
+            return self._empty(stamp, frame, f"cloud '{frame}' @ {stamp / 1e9:.3f}s: {why}")
         stamp, frame = M.stamp_ns(msg), msg.header.frame_id
         source = f"cloud '{frame}' @ {stamp / 1e9:.3f}s"
         try:
@@ -193,6 +202,40 @@ class _Stats:
         }
 
 
+SILENCE_S = 5.0  # seconds without a cloud before the node says why none may be arriving
+
+
+def check_settings(topic: str, out_ns: str, log_every: float, max_frames: int) -> dict:
+    """{output name: topic} of the node, after checking the settings that would otherwise
+    fail only once the model has warmed up (or never, silently); a ``ValueError`` names
+    the setting."""
+    from indoorbev_jax.ros2 import check_topic_name
+
+    check_topic_name(topic, "topic")
+    out_topics = {k: f"{out_ns.rstrip('/')}/{k}" for k in OUTPUTS}
+    for t in out_topics.values():
+        check_topic_name(t, "out_ns")
+    if not (isinstance(log_every, (int, float)) and math.isfinite(log_every) and log_every > 0):
+        raise ValueError(f"log_every: expected seconds > 0, got {log_every}")
+    if isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 0:
+        raise ValueError(f"max_frames: expected a whole number >= 0 (0: never), got {max_frames}")
+    return out_topics
+
+
+def silence_hint(received: int, publishers: int, topic: str, reliable: bool) -> str | None:
+    """Why no cloud arrived although ``publishers`` publish on ``topic`` (None when some did
+    arrive, or nobody publishes: then there is nothing to explain)."""
+    if received or not publishers:
+        return None
+    hint = f"{topic}: {publishers} publisher(s) but no cloud arrived in {SILENCE_S:g} s; "
+    if reliable:
+        return hint + "--reliable needs a reliable publisher (ros2 topic info -v shows its QoS)"
+    return hint + (
+        "large clouds (megabytes) are often lost whole over best-effort QoS, as one lost "
+        "fragment drops the message: with a reliable publisher, --reliable subscribes reliably"
+    )
+
+
 def run_detect_node(
     checkpoint: str,
     topic: str = "/livox/lidar",
@@ -230,6 +273,7 @@ def run_detect_node(
     """
     from indoorbev_jax.ros2 import runtime
 
+    out_topics = check_settings(topic, out_ns, log_every, max_frames)
     runtime.require_rclpy()
     if record:  # before the slow warm-up
         from indoorbev_jax.ros2.record import ensure_new
@@ -242,22 +286,11 @@ def run_detect_node(
     hint = speed_hint(detector.inference_ms(), config.inference.views)
     if hint:
         print(f"indoorbev ros2 detect: {hint}", flush=True)
-    context, node = runtime.start_node("indoorbev_detect", ros_args)
-    log = node.get_logger()
-    out_topics = {k: f"{out_ns.rstrip('/')}/{k}" for k in OUTPUTS}
-    publishers = {
-        k: node.create_publisher(runtime.msg_class(OUTPUTS[k]), t, runtime.qos(True, 5))
-        for k, t in out_topics.items()
-    }
-    recorder = None
-    if record:
-        from indoorbev_jax.ros2.record import BagRecorder
-
-        bag_topics = {topic: POINTCLOUD2} | {out_topics[k]: OUTPUTS[k] for k in OUTPUTS}
-        recorder = BagRecorder(record, bag_topics, detector.ts, storage)
 
     stats, lock, wake, stop = _Stats(), threading.Lock(), threading.Event(), threading.Event()
     mailbox: list = []  # at most one (raw cloud, receive time ns)
+    failure: list[BaseException] = []
+    started = time.monotonic()
 
     def on_cloud(raw: bytes) -> None:
         now = time.time_ns()
@@ -269,8 +302,6 @@ def run_detect_node(
             mailbox.append((raw, now))
         wake.set()
 
-    failure: list[BaseException] = []
-
     def work() -> None:
         try:
             process_forever()
@@ -280,8 +311,20 @@ def run_detect_node(
 
     def process_forever() -> None:
         last_log = time.monotonic()
+        silence_checked = False
         while not stop.is_set():
             if not wake.wait(0.1):
+                if not silence_checked and time.monotonic() - started > SILENCE_S:
+                    silence_checked = True
+                    with lock:
+                        received = stats.received
+                    try:
+                        publishing = node.count_publishers(topic)
+                    except Exception:  # noqa: BLE001 - only a hint; never stop the node
+                        publishing = 0
+                    hint = silence_hint(received, publishing, topic, reliable)
+                    if hint:
+                        log.warning(hint)
                 continue
             with lock:
                 wake.clear()
@@ -289,14 +332,15 @@ def run_detect_node(
                     continue
                 raw, received = mailbox.pop()
             result = detector.process(raw)
-            publishers["detections"].publish(result.outputs["detections"])
             published = time.time_ns()
-            publishers["markers"].publish(result.outputs["markers"])
-            publishers["occupancy"].publish(result.outputs["occupancy"])
+            for k, message in result.outputs.items():  # detections first: latency counts it
+                publishers[k].publish(message)
+                if k == "detections":
+                    published = time.time_ns()
             if recorder is not None:
-                recorder.write(topic, result.stamp, bytes(raw))
-                for k in OUTPUTS:
-                    recorder.write(out_topics[k], result.stamp, result.outputs[k])
+                recorder.write(topic, result.stamp or received, bytes(raw))
+                for k, message in result.outputs.items():
+                    recorder.write(out_topics[k], result.stamp, message)
             with lock:
                 stats.processed += 1
                 if result.warning is not None:
@@ -319,25 +363,45 @@ def run_detect_node(
             if done:
                 stop.set()
 
-    node.create_subscription(
-        runtime.msg_class(POINTCLOUD2), topic, on_cloud, runtime.qos(reliable, 1), raw=True
-    )
-    worker = threading.Thread(target=work, name="indoorbev-detect", daemon=True)
-    worker.start()
-    print(
-        f"indoorbev ros2 detect: ready (warm-up {compile_s:.1f} s); "
-        f"{topic} -> {', '.join(out_topics.values())}",
-        flush=True,
-    )
+    recorder = worker = None
+    context, node = runtime.start_node("indoorbev_detect", ros_args)
+    # Everything after the node exists runs under try, so that Ctrl-C at any point still
+    # finishes the recording and stops the node.
     try:
+        log = node.get_logger()
+        publishers = {
+            k: node.create_publisher(runtime.msg_class(OUTPUTS[k]), t, runtime.qos(True, 5))
+            for k, t in out_topics.items()
+        }
+        if record:
+            from indoorbev_jax.ros2.record import BagRecorder
+
+            bag_topics = {topic: POINTCLOUD2} | {out_topics[k]: OUTPUTS[k] for k in OUTPUTS}
+            recorder = BagRecorder(record, bag_topics, detector.ts, storage)
+        node.create_subscription(
+            runtime.msg_class(POINTCLOUD2), topic, on_cloud, runtime.qos(reliable, 1), raw=True
+        )
+        worker = threading.Thread(target=work, name="indoorbev-detect", daemon=True)
+        worker.start()
+        print(
+            f"indoorbev ros2 detect: ready (warm-up {compile_s:.1f} s); "
+            f"{topic} -> {', '.join(out_topics.values())}",
+            flush=True,
+        )
         runtime.spin(node, context, stop)
     finally:
-        stop.set()
-        worker.join()
-        if recorder is not None:
-            path = recorder.close()
-            print(f"indoorbev ros2 detect: recorded {recorder.counts} into {path}", flush=True)
-        runtime.stop_node(node, context)
+        held = "indoorbev ros2 detect: finishing the current frame" + (
+            f" and the recording {record} (kill -9 abandons it)" if recorder else ""
+        )
+        with runtime.signals_held(held):
+            stop.set()
+            if worker is not None:
+                worker.join()
+            if recorder is not None:
+                path = recorder.close()
+                print(f"indoorbev ros2 detect: recorded {recorder.counts} into {path}",
+                      flush=True)  # fmt: skip
+            runtime.stop_node(node, context)
     if failure:
         raise RuntimeError("the inference worker failed") from failure[0]
     summary = stats.summary()

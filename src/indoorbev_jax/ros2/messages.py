@@ -18,6 +18,8 @@ Per input cloud the detect node publishes, all stamped and framed like the cloud
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 
 from indoorbev_jax.config import GridConfig
@@ -34,6 +36,25 @@ _DETECTION_DTYPE = np.dtype([(n, "<i4" if n == "class_id" else "<f4") for n in D
 def stamp_ns(msg) -> int:
     """The header stamp of a message, in nanoseconds."""
     return int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+
+
+def header_from_cdr(raw: bytes) -> tuple[int, str] | None:
+    """(stamp ns, frame id) of a serialized message that starts with a std_msgs/Header,
+    read without decoding the rest, or None when even that is unreadable. So that outputs
+    for a cloud whose body is broken still carry its stamp and frame."""
+    raw = bytes(raw)
+    if len(raw) < 16 or raw[0] != 0 or raw[1] not in (0, 1):
+        return None
+    order = "<" if raw[1] == 1 else ">"  # encapsulation 0x0001: little-endian CDR
+    sec, nanosec, size = struct.unpack_from(order + "iII", raw, 4)
+    text = raw[16 : 16 + size]
+    if size == 0 or len(text) != size or text[-1] != 0 or nanosec >= 10**9:
+        return None
+    try:
+        frame = text[:-1].decode()
+    except UnicodeDecodeError:
+        return None
+    return sec * 10**9 + nanosec, frame
 
 
 def detections_msg(ts, labels: kitti.ObjectLabels, stamp: int, frame: str):

@@ -12,11 +12,24 @@ STORAGES = ("sqlite3", "mcap")
 
 
 def ensure_new(path: str | os.PathLike) -> Path:
-    """``path`` as a Path; a ``FileExistsError`` when something is there already."""
+    """``path`` as a Path; a ``FileExistsError`` when something is there already, or when
+    ``<path>.partial`` (an interrupted recording) is: it is the user's to keep or delete."""
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path}: already exists; record into a new folder")
+    partial = partial_path(path)
+    if partial.exists():
+        raise FileExistsError(
+            f"{partial}: left by an interrupted recording into {path} (a killed mcap "
+            "recording can be recovered with `mcap recover`; a killed sqlite3 one holds no "
+            "message); move or delete it, or record into a new folder"
+        )
     return path
+
+
+def partial_path(path: Path) -> Path:
+    """Where a recording into ``path`` is written until it is complete."""
+    return path.with_name(path.name + ".partial")
 
 
 class BagRecorder:
@@ -38,8 +51,7 @@ class BagRecorder:
         if storage not in STORAGES:
             raise ValueError(f"storage: expected one of {STORAGES}, got '{storage}'")
         self.path = ensure_new(path)
-        self._partial = self.path.with_name(self.path.name + ".partial")
-        shutil.rmtree(self._partial, ignore_errors=True)
+        self._partial = partial_path(self.path)
         self._partial.mkdir(parents=True)
         self.counts = dict.fromkeys(topics, 0)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
@@ -51,7 +63,9 @@ class BagRecorder:
         )
         self._thread.start()
         self._opened.wait()
-        self._raise()
+        if self._error is not None:  # nothing was recorded: leave nothing behind
+            shutil.rmtree(self._partial, ignore_errors=True)
+            self._raise()
 
     def _run(self, topics, ts, storage) -> None:
         from rosbags.rosbag2 import StoragePlugin, Writer

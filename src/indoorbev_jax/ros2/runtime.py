@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import signal
+import sys
 import threading
 
 from indoorbev_jax.ros2 import require_rclpy
 
-__all__ = ["msg_class", "qos", "require_rclpy", "spin", "start_node", "stop_node"]
+__all__ = [
+    "msg_class", "qos", "require_rclpy", "signals_held", "spin", "start_node", "stop_node"
+]  # fmt: skip
 
 
 def msg_class(msgtype: str):
@@ -61,3 +65,26 @@ def stop_node(node, context) -> None:
     node.destroy_node()
     if context.ok():
         context.try_shutdown()
+
+
+@contextlib.contextmanager
+def signals_held(message: str):
+    """Ctrl-C and SIGTERM print ``message`` instead of interrupting the block.
+
+    For shutdown work that must finish (joining the worker, closing a recording): an
+    impatient second Ctrl-C would otherwise abandon the bag, and a sqlite3 bag keeps no
+    message until it is closed. A no-op outside the main thread (signals go there).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def hold(signum, frame):
+        print(message, file=sys.stderr, flush=True)
+
+    saved = {s: signal.signal(s, hold) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in saved.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
