@@ -369,8 +369,16 @@ def point_footprint_agreement(batch, info, grid: GridConfig) -> list[dict]:
 
 def check(config: Config, frames: int, batch_size: int, seed: int, split: str = "train") -> str:
     """Generates ``frames`` frames and reports the done-when statistics as text: points in
-    their own dilated footprint / in another's, and objects per class."""
+    their own dilated footprint / in another's, and objects per class.
+
+    Raises:
+      ValueError: ``frames`` or ``batch_size`` is not a whole number > 0 (named).
+    """
     import time
+
+    for name, value in (("frames", frames), ("batch_size", batch_size)):
+        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+            raise ValueError(f"{name}: expected a whole number > 0, got {value!r}")
 
     import jax
     from indoorbev_sim import generate

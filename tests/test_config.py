@@ -56,6 +56,26 @@ def test_from_dict_rejects_unknown_fields():
         Config.from_dict(d)
 
 
+def test_from_dict_checks_each_value_against_the_field_type():
+    """A hand-edited config.json fails naming the field, not deep inside a jitted step."""
+    d = Config.tiny().to_dict()
+    d["train"]["batch_size"] = "8"
+    with pytest.raises(ConfigError, match=r"'train\.batch_size': got '8', expected"):
+        Config.from_dict(d)
+    d = Config.tiny().to_dict()
+    d["grid"] = 3
+    with pytest.raises(ConfigError, match="config section 'grid': expected an object, got 3"):
+        Config.from_dict(d)
+    d = Config.tiny().to_dict()
+    d["backbone"]["depths"] = [1, "x", 1, 1]
+    with pytest.raises(ConfigError, match=r"'backbone\.depths'"):
+        Config.from_dict(d)
+    d = Config.tiny().to_dict()
+    d["train"]["learning_rate"] = 1  # an int where a float goes is that float
+    assert Config.from_dict(d).train.learning_rate == 1.0
+    assert isinstance(Config.from_dict(d).train.learning_rate, float)
+
+
 def test_with_overrides_parses_json_values_and_names_bad_items():
     from indoorbev_jax.config import with_overrides
 

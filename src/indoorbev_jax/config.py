@@ -669,17 +669,29 @@ class Config:
 
 
 def _from_dict(kind, d: dict[str, Any], prefix: str):
+    if not isinstance(d, dict):
+        section = prefix.rstrip(".") or "config"
+        raise ConfigError(f"config section '{section}': expected an object, got {d!r}")
     fields = {f.name: f for f in dataclasses.fields(kind)}
     unknown = set(d) - set(fields)
     if unknown:
         raise ConfigError(f"unknown config field(s) {sorted(prefix + k for k in unknown)}")
+    hints = typing.get_type_hints(kind)
     kwargs = {}
     for name, value in d.items():
         default = getattr(kind(), name)
         if dataclasses.is_dataclass(default):
             value = _from_dict(type(default), value, f"{prefix}{name}.")
-        elif isinstance(value, list):
-            value = _to_tuple(value)
+        else:
+            # A hand-edited config.json ("2" for 2, "false" for false) fails here, naming the
+            # field, rather than deep inside a jitted function.
+            try:
+                value = _as_type(value, hints[name])
+            except TypeError:
+                msg = f"got {value!r}, expected {_describe(hints[name])}"
+                raise ConfigError(f"config field '{prefix}{name}': {msg}") from None
+            except NotImplementedError:  # a type --set does not parse either: as given
+                value = _to_tuple(value) if isinstance(value, list) else value
         kwargs[name] = value
     return kind(**kwargs)
 

@@ -20,3 +20,13 @@ def test_publish_needs_a_positive_rate(value, capsys):
         main(["ros2", "publish", "--rate", value])
     assert e.value.code == 2
     assert f"argument --rate: must be a finite number > 0, got {value}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("frames, batch", [(0, 4), (8, 0), (-1, 4), (8, 2.0)])
+def test_check_library_needs_positive_frames_and_batch(frames, batch):
+    from indoorbev_sim.labels import check
+
+    from indoorbev_jax.config import Config
+
+    with pytest.raises(ValueError, match="(frames|batch_size): expected a whole number > 0"):
+        check(Config.tiny(), frames, batch, seed=0)
