@@ -138,3 +138,36 @@ def test_with_overrides_checks_each_value_against_the_field_type():
             with_overrides(base, [item])
     with pytest.raises(ConfigError, match="train has no field 'nope' .*augment, eval_batches"):
         with_overrides(base, ["train.nope=1"])
+
+
+def test_configs_pass_through_jit_and_vmap_without_static_argnums():
+    """Configs are pytrees without leaves: plain jax.jit / jax.vmap take them, and a jitted
+    function retraces when a config value changes."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from indoorbev_jax.data.rasterize import rasterize_boxes
+
+    grid = Config.tiny().grid
+    boxes = jnp.array([[0.0, 0.0, 1.0, 0.5, 0.3], [1.0, -1.0, 0.4, 0.4, 0.0]])
+    valid = jnp.array([True, True])
+    ids, masks = rasterize_boxes(boxes, valid, grid)
+    jit_ids, jit_masks = jax.jit(rasterize_boxes)(boxes, valid, grid)
+    np.testing.assert_array_equal(jit_ids, ids)
+    np.testing.assert_array_equal(jit_masks, masks)
+    v_ids, _ = jax.vmap(rasterize_boxes)(boxes[None], valid[None], grid)
+    np.testing.assert_array_equal(v_ids[0], ids)
+    traces = []
+
+    @jax.jit
+    def cells(config, x):
+        traces.append(config.cell_size)
+        return x * config.shape[0]
+
+    cells(grid, 1.0)
+    cells(grid, 2.0)
+    coarse = dataclasses.replace(grid, cell_size=2 * grid.cell_size)
+    assert float(cells(coarse, 1.0)) == coarse.shape[0]
+    assert traces == [grid.cell_size, coarse.cell_size]
+    assert jax.tree.leaves(Config.tiny()) == []

@@ -122,6 +122,11 @@ def test_jittable_inside_outer_jit_and_checks_shapes():
         panoptic_inference_from_logits(logits, masks[:, :3])
     with pytest.raises(ValueError, match="predictions.logits"):
         panoptic_inference(Predictions(logits[0], None, None, None, masks))
+    # A dict of the outputs, as PyTorch code passes them, gives the same result.
+    preds = Predictions(logits[None], None, None, None, masks[None])
+    as_dict = {k: preds[k] for k in preds.keys()}
+    a, b = panoptic_inference(preds), panoptic_inference(as_dict)
+    np.testing.assert_array_equal(np.asarray(a.instance_ids), np.asarray(b.instance_ids))
 
 
 def test_identical_queries_tie_to_the_lower_index():

@@ -167,6 +167,21 @@ def test_loss_matches_per_sample_reference(batch):
     np.testing.assert_allclose(total, weighted, rtol=1e-6)
 
 
+def test_predictions_read_by_name_and_given_as_a_dict(batch):
+    """The containers read like the PyTorch code's dicts, and set_loss takes a dict of the
+    outputs and a LossConfig for its weights, with the same result."""
+    preds, targets = batch
+    assert preds["logits"] is preds.logits and preds.keys() == tuple(dict(preds))
+    with pytest.raises(KeyError, match="no field 'logit'"):
+        preds["logit"]
+    total, parts = set_loss(preds, targets, WEIGHTS)
+    total_dict, parts_dict = set_loss(dict(preds), targets, CFG)
+    np.testing.assert_allclose(total_dict, total, rtol=1e-6)
+    assert parts_dict.keys() == parts.keys()
+    with pytest.raises(TypeError, match=r"missing \['masks'\]"):
+        set_loss({k: preds[k] for k in preds.keys() if k != "masks"}, targets, WEIGHTS)
+
+
 def test_invariant_to_permuting_queries_and_targets(batch):
     preds, targets = batch
     rng = np.random.default_rng(3)

@@ -142,9 +142,28 @@ def test_gradient_is_finite_for_nan_costs():
     np.testing.assert_array_equal(np.asarray(grad), expected)
 
 
+def test_more_target_slots_than_queries_matches_like_scipy():
+    """M > Q: the valid targets still get the optimum scipy finds; when more than Q are
+    valid, Q of them are matched (scipy's rectangular case) and the rest get -1."""
+    rng = np.random.default_rng(5)
+    q, m = 4, 7
+    cost = rng.random((12, q, m)).astype(np.float32)
+    valid = np.zeros((12, m), bool)
+    for b in range(12):
+        valid[b, rng.choice(m, size=b % (m + 1), replace=False)] = True
+    query_idx = np.asarray(_match(jnp.asarray(cost), jnp.asarray(valid))[0])
+    for b in range(12):
+        js = np.flatnonzero(valid[b])
+        got = query_idx[b, js]
+        matched = got >= 0
+        assert matched.sum() == min(len(js), q)
+        assert np.all(got[~matched] == -1)
+        assert len(set(got[matched])) == matched.sum()  # distinct queries
+        total = cost[b, got[matched], js[matched]].sum()
+        np.testing.assert_allclose(total, _scipy_total(cost[b], valid[b]), rtol=1e-5)
+
+
 def test_bad_shapes_raise():
-    with pytest.raises(ValueError, match="cannot all be matched"):
-        match(jnp.zeros((1, 3, 4)), jnp.ones((1, 4), bool))
     with pytest.raises(ValueError, match="valid must be"):
         match(jnp.zeros((1, 4, 3)), jnp.ones((1, 4), bool))
     with pytest.raises(ValueError, match=r"\[B, Q, M\]"):

@@ -270,6 +270,11 @@ def test_mask_ap_no_ground_truth_and_no_predictions():
     ours = mask_ap(gts, no_det)
     assert ours["ap"] == {0.25: 0.0, 0.5: 0.0}
     assert_ap_equal(ours, *coco_reference(gts, no_det))
+    # An empty frame may be given as plain lists; the result is the same.
+    assert mask_ap(gts, [([], [], [])] * 2) == ours
+    assert mask_ap([([], [])] * 2, dets) == mask_ap(no_gt, dets)
+    mixed = mask_ap([gts[0], ([], [])], [dets[0], ([], [], [])])
+    assert mixed == mask_ap([gts[0], no_gt[0]], [dets[0], no_det[0]])
 
 
 def test_mask_ap_rejects_bad_input():

@@ -22,6 +22,8 @@ import math
 import typing
 from typing import Any
 
+import jax
+
 CLASS_NAMES: tuple[str, ...] = (
     "Table",
     "Chair",
@@ -804,6 +806,14 @@ def with_overrides(config: Config, items: list[str] | tuple[str, ...]) -> Config
             msg = f"got {raw!r}, expected {_describe(hint)}"
             raise ConfigError(f"config field '{path}': {msg}") from None
     return Config.from_dict(d)
+
+
+# Every config is a pytree without leaves (its values are static): ``jax.jit(f)(x, grid)``
+# and ``jax.vmap(f)(x, grid)`` then work without ``static_argnums`` / ``in_axes=None``, and
+# jit retraces when a config value changes (they are frozen, so hashable).
+for _kind in (GridConfig, DataConfig, EncoderConfig, BackboneConfig, HeadConfig, LossConfig,
+              InferenceConfig, AugmentConfig, TrainConfig, SimConfig, Config):  # fmt: skip
+    jax.tree_util.register_static(_kind)
 
 
 # Command lines ----------------------------------------------------------------------------

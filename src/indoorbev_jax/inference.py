@@ -32,7 +32,7 @@ import numpy as np
 from flax import struct
 
 from indoorbev_jax.config import VIEWS, InferenceConfig, check_views
-from indoorbev_jax.types import Predictions
+from indoorbev_jax.types import Predictions, as_predictions
 
 
 @struct.dataclass
@@ -160,12 +160,14 @@ def panoptic_inference(
     """``panoptic_inference_from_logits`` on the last decoder layer of ``predictions``.
 
     Args:
-      predictions: network outputs; logits [L, B, Q, K], masks [L, B, Q, H, W].
+      predictions: network outputs (``Predictions`` or a dict of its fields); logits
+        [L, B, Q, K], masks [L, B, Q, H, W].
       config: thresholds; None: ``InferenceConfig()``.
 
     Returns:
       A ``PanopticOutput`` for the B frames.
     """
+    predictions = as_predictions(predictions)
     if predictions.logits.ndim != 4:
         raise ValueError(
             f"predictions.logits: expected [L, B, Q, K], got shape {predictions.logits.shape}"

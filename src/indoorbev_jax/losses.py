@@ -38,7 +38,7 @@ import jax.numpy as jnp
 from indoorbev_jax import matching
 from indoorbev_jax.config import LossConfig
 from indoorbev_jax.geometry import wrap_angle
-from indoorbev_jax.types import Predictions, Targets
+from indoorbev_jax.types import Predictions, Targets, as_predictions
 
 TERMS: tuple[str, ...] = ("cls", "dice", "focal", "dims", "pos", "yaw")
 # Optional key of ``weights``; when absent ``LossConfig.background_weight`` is used.
@@ -254,7 +254,7 @@ def _check_weights(weights: dict) -> None:
 def set_loss(
     predictions: Predictions,
     targets: Targets,
-    weights: dict,
+    weights: dict | LossConfig,
     config: LossConfig = DEFAULT_CONFIG,
     *,
     key: jax.Array | None = None,
@@ -267,14 +267,16 @@ def set_loss(
     See the module docstring for the normalisation and for point sampling.
 
     Args:
-      predictions: ``Predictions``: logits [L, B, Q, K], dims/pos [L, B, Q, 3],
-        yaw [L, B, Q, 1], masks [L, B, Q, H, W] (logits); any float dtype, losses are float32.
+      predictions: ``Predictions`` (or a dict of its fields): logits [L, B, Q, K],
+        dims/pos [L, B, Q, 3], yaw [L, B, Q, 1], masks [L, B, Q, H, W] (logits); any float
+        dtype, losses are float32.
       targets: ``Targets``: classes [B, M], dims/pos [B, M, 3], yaw [B, M], valid [B, M],
         masks bool [B, M, H, W]. Frames without targets are fine.
       weights: ``{"cls", "dice", "focal", "dims", "pos", "yaw"}`` loss weights, as
         ``LossConfig.weights()`` gives, optionally ``"background"`` (else
         ``config.background_weight``). Python floats or (traced) scalar arrays, so a sweep
-        can ``jax.vmap`` over them.
+        can ``jax.vmap`` over them. A ``LossConfig`` stands for its ``weights()`` and, when
+        ``config`` is not given, for ``config`` too.
       config: matching-cost weights, background weight, focal alpha/gamma, point sampling,
         ``aux_loss``. Static.
       key: ``jax.random`` key, required when ``config.num_mask_points > 0``.
@@ -293,6 +295,10 @@ def set_loss(
 
         total, parts = set_loss(predictions, targets, LossConfig().weights())
     """
+    if isinstance(weights, LossConfig):
+        config = weights if config is DEFAULT_CONFIG else config
+        weights = weights.weights()
+    predictions = as_predictions(predictions)
     _check_inputs(predictions, targets)
     _check_weights(weights)
     _check_key(config, key)
@@ -300,6 +306,8 @@ def set_loss(
         predictions = jax.tree.map(lambda x: x[-1:], predictions)
     lyr, b, q, num_k = predictions.logits.shape
     m = targets.classes.shape[1]
+    if m > q:  # match would leave some target without a query (-1)
+        raise ValueError(f"set_loss: {m} target slots cannot all be matched to {q} queries")
     valid = targets.valid.astype(bool)
     key_cost, key_loss = jax.random.split(key) if key is not None else (None, None)
 

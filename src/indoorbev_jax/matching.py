@@ -80,6 +80,8 @@ def _match_one(cost: jax.Array, valid: jax.Array) -> jax.Array:
     used = jnp.zeros(q, bool).at[jnp.where(valid, col, q)].set(True, mode="drop")  # [Q]
     unused = jnp.argsort(used, stable=True).astype(jnp.int32)  # unused queries first
     pad_rank = jnp.cumsum(~valid) - 1  # [M]
+    # A valid target on a dummy had no query left (more valid targets than queries): -1.
+    col = jnp.where(col < q, col, -1)
     return jnp.where(valid, col, unused[jnp.clip(pad_rank, 0, q - 1)])
 
 
@@ -99,10 +101,12 @@ def match(cost: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
     Returns:
       ``(query_idx, target_idx)``, int32 [B, M] each, sorted by target: ``target_idx[b] =
       0..M-1`` and ``query_idx[b, j]`` is the query matched to target j. Entries of padded
-      targets hold distinct leftover queries and carry no meaning.
+      targets hold leftover queries (distinct while M <= Q) and carry no meaning. M may
+      exceed Q: with at most Q valid targets each still gets its query; with more, as in
+      scipy, Q of them are matched (least total cost) and the rest get -1.
 
     Raises:
-      ValueError: when shapes disagree or M > Q (some target could not be matched).
+      ValueError: when shapes disagree.
     """
     if cost.ndim != 3:
         raise ValueError(f"match: cost must be [B, Q, M], got shape {cost.shape}")
@@ -111,8 +115,6 @@ def match(cost: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
         raise ValueError(
             f"match: valid must be [B, M] = {(b, m)} to fit cost {cost.shape}, got {valid.shape}"
         )
-    if m > q:
-        raise ValueError(f"match: {m} targets cannot all be matched to {q} queries ({cost.shape})")
     # The solver's while loops are not reverse-differentiable and the indices are piecewise
     # constant anyway: stopping the gradient here keeps jax.grad of the loss well defined.
     cost = jax.lax.stop_gradient(clean_cost(cost, valid.astype(bool)))

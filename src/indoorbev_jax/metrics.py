@@ -100,9 +100,18 @@ def _check_classes(name: str, classes: np.ndarray, num_classes: int) -> None:
         raise ValueError(f"{name}: class ids must lie in 0..{num_classes - 1}, got {classes}")
 
 
+def _no_masks_as_3d(masks: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """An empty list (or any 0-size array) of masks as [0, H, W], H x W taken from the other
+    side of the frame: a frame without objects may be given as ``[]``."""
+    if masks.size or masks.ndim == 3:
+        return masks
+    return masks.reshape((0, *other.shape[1:]) if other.ndim == 3 else (0, 0, 0))
+
+
 def _ap_frame(gt, det, index: int, num_classes: int) -> _APFrame:
     gt_masks, gt_classes = (np.asarray(x) for x in gt)
     det_masks, det_classes, det_scores = (np.asarray(x) for x in det)
+    gt_masks, det_masks = _no_masks_as_3d(gt_masks, det_masks), _no_masks_as_3d(det_masks, gt_masks)
     if gt_masks.ndim != 3 or gt_classes.shape != gt_masks.shape[:1]:
         raise ValueError(
             f"gts[{index}]: expected masks [M, H, W] and classes [M], got shapes "

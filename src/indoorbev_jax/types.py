@@ -16,12 +16,27 @@ Boxes (DESIGN sections 2-3), all in the lidar frame (x forward, y left, z up, me
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import jax
 from flax import struct
 
 
+class _ByName:
+    """``x["logits"]`` as well as ``x.logits``, and ``keys()``: the containers read like the
+    dicts of the PyTorch code (``{logits, dims, pos, yaw, masks}``) they replace."""
+
+    def __getitem__(self, name: str):
+        if not isinstance(name, str) or name not in self.keys():
+            raise KeyError(f"{type(self).__name__} has no field {name!r}; fields: {self.keys()}")
+        return getattr(self, name)
+
+    def keys(self) -> tuple[str, ...]:
+        return tuple(self.__dataclass_fields__)
+
+
 @struct.dataclass
-class Targets:
+class Targets(_ByName):
     """Ground truth of B frames, padded to M objects.
 
     Attributes:
@@ -44,7 +59,7 @@ class Targets:
 
 
 @struct.dataclass
-class Batch:
+class Batch(_ByName):
     """Model inputs plus targets: what a data source yields and the train step consumes.
 
     Attributes:
@@ -59,7 +74,7 @@ class Batch:
 
 
 @struct.dataclass
-class Predictions:
+class Predictions(_ByName):
     """Raw network outputs for every decoder layer (the last layer is the final one).
 
     Attributes:
@@ -73,3 +88,18 @@ class Predictions:
     pos: jax.Array
     yaw: jax.Array
     masks: jax.Array
+
+
+def as_predictions(x: Predictions | Mapping) -> Predictions:
+    """``x``, or a mapping with the fields of ``Predictions`` as one (a ``TypeError``
+    naming the missing or unknown keys otherwise)."""
+    if isinstance(x, Predictions):
+        return x
+    if isinstance(x, Mapping):
+        fields = tuple(Predictions.__dataclass_fields__)
+        if set(x) != set(fields):
+            missing = [k for k in fields if k not in x]
+            unknown = [k for k in x if k not in fields]
+            raise TypeError(f"predictions: missing {missing}, unknown {unknown}; fields {fields}")
+        return Predictions(**x)
+    raise TypeError(f"predictions: expected Predictions or a mapping, got {type(x).__name__}")

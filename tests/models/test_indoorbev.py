@@ -60,6 +60,10 @@ def test_paper_preset_shapes_and_parameter_count_from_eval_shape():
     doc = pathlib.Path(__file__).parents[2] / "docs" / "MODEL.md"
     stated = re.search(r"paper preset has ([\d,]+) parameters", doc.read_text())
     assert stated and int(stated.group(1).replace(",", "")) == n, n
+    small = jax.eval_shape(IndoorBEV(Config.small()).init, jax.random.key(0), pts, valid)
+    stated = re.search(r"`small` preset has ([\d,]+)", doc.read_text())
+    n_small = sum(x.size for x in jax.tree.leaves(small))
+    assert stated and int(stated.group(1).replace(",", "")) == n_small, n_small
 
 
 def test_tiny_forward_traces_once_per_shape_and_ignores_order_and_padding(params):
