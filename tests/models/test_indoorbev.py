@@ -147,3 +147,21 @@ def test_pooled_memory_and_code_match_numpy_block_means(h, w, s):
     p = (np.arange(h) + 1) / h * 2 * np.pi
     np.testing.assert_allclose(sine_code_1d(h, 4)[:, 0], np.sin(p), atol=1e-6)
     np.testing.assert_allclose(sine_code_1d(h, 4)[:, 3], np.cos(p / 10000**0.5), atol=1e-6)
+
+
+def test_grid_that_is_not_square():
+    """DESIGN section 2 sizes H (along y) and W (along x) apart: a 4 m x 10 m grid gives
+    16 x 40 masks and stays invariant to point order."""
+    grid = dataclasses.replace(TINY.grid, y_range=(-2.0, 2.0))
+    cfg = dataclasses.replace(TINY, grid=grid)
+    assert grid.shape == (16, 40)
+    model = IndoorBEV(cfg)
+    pts, valid = _points(5, 2, 256)
+    pts[..., 1] *= 0.4  # y within [-2, 2]
+    p = jax.jit(model.init, compiler_options=FAST)(jax.random.key(1), pts, valid)
+    apply = jax.jit(model.apply, compiler_options=FAST)
+    out = apply(p, pts, valid)
+    assert out.masks.shape == (TINY.head.num_layers, 2, TINY.head.num_queries, 16, 40)
+    perm = np.random.default_rng(0).permutation(pts.shape[1])
+    again = apply(p, pts[:, perm], valid[:, perm])
+    np.testing.assert_allclose(again.masks, out.masks, atol=1e-4)

@@ -68,22 +68,27 @@ def test_patch_merging_matches_numpy():
     np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-5)
 
 
-def _original_coords(res: int, ws: int, shift: int) -> np.ndarray:
+def _original_coords(res: tuple[int, int], ws: int, shift: int) -> np.ndarray:
     """[nW, T, 2]: (row, col) in the unrolled map of every token of every (shifted) window."""
-    rows, cols = np.meshgrid(np.arange(res), np.arange(res), indexing="ij")
+    rh, rw = res
+    rows, cols = np.meshgrid(np.arange(rh), np.arange(rw), indexing="ij")
     grid = np.stack([rows, cols], -1)
     grid = np.roll(grid, (-shift, -shift), axis=(0, 1))
-    grid = grid.reshape(res // ws, ws, res // ws, ws, 2).transpose(0, 2, 1, 3, 4)
+    grid = grid.reshape(rh // ws, ws, rw // ws, ws, 2).transpose(0, 2, 1, 3, 4)
     return grid.reshape(-1, ws * ws, 2)
 
 
-def test_shifted_window_attention_never_crosses_a_shift_boundary_or_reads_padding():
+# The tiny grid (40 x 40), and 16 x 40 (DESIGN section 2 sizes H and W apart).
+@pytest.mark.parametrize("shape", [(40, 40), (16, 40)])
+def test_shifted_window_attention_never_crosses_a_shift_boundary_or_reads_padding(shape):
     cfg = Config.tiny().backbone
-    side = Config.tiny().grid.shape[0]
-    geo = stage_geometry(side, cfg)
-    assert any(s for _, _, s in geo), "tiny config must exercise SW-MSA"
-    assert any(v < r for r, v, _ in geo), "tiny config must exercise padding"
-    x = jax.random.normal(jax.random.key(3), (2, side, side, 16))
+    assert Config.tiny().grid.shape == (40, 40)
+    geo = stage_geometry(shape, cfg)
+    if shape[0] == shape[1]:  # a square side given as one int gives the same, as ints
+        assert stage_geometry(shape[0], cfg) == [(r[0], v[0], s) for r, v, s in geo]
+    assert any(s for _, _, s in geo), "the grid must exercise SW-MSA"
+    assert any(v != r for r, v, _ in geo), "the grid must exercise padding"
+    x = jax.random.normal(jax.random.key(3), (2, *shape, 16))
     mod = SwinBackbone(cfg)
     params = jax.jit(mod.init, compiler_options=FAST)(jax.random.key(4), x)
     _, inter = jax.jit(
@@ -100,7 +105,7 @@ def test_shifted_window_attention_never_crosses_a_shift_boundary_or_reads_paddin
         # by the shift is >= res - ws apart.
         d = np.abs(xy[:, :, None, :] - xy[:, None, :, :]).max(-1)  # [nW, T, T]
         contiguous = d < ws
-        key_valid = (xy < valid).all(-1)  # [nW, T]
+        key_valid = (xy < np.asarray(valid)).all(-1)  # [nW, T]
         allowed = contiguous & key_valid[:, None, :]
         q_valid = key_valid[:, :, None] & np.ones_like(allowed)
         forbidden = ~allowed & q_valid

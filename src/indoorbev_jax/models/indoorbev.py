@@ -50,16 +50,14 @@ class IndoorBEV(nn.Module):
         cfg = self.config
         dtype = self.dtype or (jnp.bfloat16 if cfg.train.bfloat16 else jnp.float32)
         h, w = cfg.grid.shape
-        if h != w:
-            raise ValueError(f"config.grid must be square for the Swin backbone, got {h} x {w}")
         bev = AFPCCN(cfg.grid, cfg.encoder.channels, name="encoder")(points, valid)
         stages = SwinBackbone(cfg.backbone, dtype, name="backbone")(bev)
         steps = cfg.backbone.total_stride.bit_length() - 1  # strides are 1 or 2
-        side = padded_side(h, cfg.backbone)
+        side_h, side_w = padded_side(h, cfg.backbone), padded_side(w, cfg.backbone)
         up = AdaptiveUpsampler(
             steps, cfg.head.hidden_dim, cfg.head.upsampler_skips, dtype, cfg.head.remat,
             name="upsampler",
-        )(stages, jnp.pad(bev, ((0, 0), (0, side - h), (0, side - w), (0, 0))))  # fmt: skip
+        )(stages, jnp.pad(bev, ((0, 0), (0, side_h - h), (0, side_w - w), (0, 0))))  # fmt: skip
         up = up[:, :h, :w]  # [B, H, W, C'] crop the padding
         out = SimpleMaskHead(cfg.head, cfg.num_classes, dtype, cfg.grid, name="head")(up)
         return Predictions(**out)

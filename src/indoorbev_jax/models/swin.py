@@ -67,12 +67,18 @@ def relative_position_index(ws: int) -> np.ndarray:
     return (rel[0] * (2 * ws - 1) + rel[1]).astype(np.int32)
 
 
-def window_masks(res: int, valid: int, ws: int, shift: int) -> tuple[np.ndarray, np.ndarray]:
+def _pair(x) -> tuple[int, int]:
+    """(rows, cols) of a side given as one int (a square map) or as a pair."""
+    return (int(x), int(x)) if np.ndim(x) == 0 else (int(x[0]), int(x[1]))
+
+
+def window_masks(res, valid, ws: int, shift: int) -> tuple[np.ndarray, np.ndarray]:
     """Static inputs of the attention mask of one block, in the rolled frame.
 
     Args:
-      res: padded side of the (square) map.
-      valid: cells [0, valid) per side hold data; the rest is padding.
+      res: padded size of the map: one int (square) or (rows, cols).
+      valid: cells [0, valid) along each axis hold data (an int or a pair); the rest is
+        padding.
       ws: window size.
       shift: cyclic shift (0 for W-MSA).
 
@@ -81,18 +87,22 @@ def window_masks(res: int, valid: int, ws: int, shift: int) -> tuple[np.ndarray,
       their region ids match (tokens wrapped around by the shift form separate regions, as in
       Swin) and the key is not padding.
     """
-    region = np.zeros((res, res), np.int32)
+    (rh, rw), (vh, vw) = _pair(res), _pair(valid)
+    region = np.zeros((rh, rw), np.int32)
     if shift:
-        cuts = (slice(0, res - ws), slice(res - ws, res - shift), slice(res - shift, res))
-        for a, rows in enumerate(cuts):
-            for c, cols in enumerate(cuts):
+
+        def cuts(r):
+            return slice(0, r - ws), slice(r - ws, r - shift), slice(r - shift, r)
+
+        for a, rows in enumerate(cuts(rh)):
+            for c, cols in enumerate(cuts(rw)):
                 region[rows, cols] = 3 * a + c
-    ok = np.zeros((res, res), bool)
-    ok[:valid, :valid] = True
+    ok = np.zeros((rh, rw), bool)
+    ok[:vh, :vw] = True
     ok = np.roll(ok, (-shift, -shift), axis=(0, 1))
 
     def part(a: np.ndarray) -> np.ndarray:
-        a = a.reshape(res // ws, ws, res // ws, ws).transpose(0, 2, 1, 3)  # [h', w', ws, ws]
+        a = a.reshape(rh // ws, ws, rw // ws, ws).transpose(0, 2, 1, 3)  # [h', w', ws, ws]
         return a.reshape(-1, ws * ws)
 
     return part(region), part(ok)
@@ -156,7 +166,8 @@ class SwinBlock(nn.Module):
     Attributes:
       dim, num_heads, window_size: as in ``WindowAttention``.
       shift: cyclic shift of the windows (0: W-MSA, > 0: SW-MSA).
-      valid: cells [0, valid) per side of this stage's map hold data.
+      valid: cells [0, valid) along each axis of this stage's map hold data: an int, or
+        (rows, cols) for a map that is not square.
       mlp_ratio: hidden width of the MLP relative to ``dim``.
       dtype: computation dtype.
       chunk_windows: 0, or run the block over groups of this many windows, each group under
@@ -167,27 +178,28 @@ class SwinBlock(nn.Module):
     num_heads: int
     window_size: int
     shift: int
-    valid: int
+    valid: int | tuple[int, int]
     mlp_ratio: float = 2.0
     dtype: jnp.dtype = jnp.float32
     chunk_windows: int = 0
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        """[B, R, R, C] -> [B, R, R, C] on the padded map of side R."""
-        b, res, _, c = x.shape
+        """[B, R, R', C] -> [B, R, R', C] on the padded map."""
+        b, rh, rw, c = x.shape
         ws, s = self.window_size, self.shift
-        if 0 < self.chunk_windows < (res // ws) ** 2:
+        if 0 < self.chunk_windows < (rh // ws) * (rw // ws):
             return self._chunked(x)
         y = nn.LayerNorm(dtype=self.dtype, name="norm1")(x)
         if s:
             y = jnp.roll(y, (-s, -s), axis=(1, 2))
-        masked = s > 0 or self.valid < res
-        region, key_ok = window_masks(res, self.valid, ws, s) if masked else (None, None)
+        vh, vw = _pair(self.valid)
+        masked = s > 0 or vh < rh or vw < rw
+        region, key_ok = window_masks((rh, rw), (vh, vw), ws, s) if masked else (None, None)
         y = WindowAttention(c, self.num_heads, ws, self.dtype, name="attn")(
             window_partition(y, ws), region, key_ok
         )
-        y = window_reverse(y, ws, res, res)  # [B, R, R, C]
+        y = window_reverse(y, ws, rh, rw)  # [B, R, R', C]
         if s:
             y = jnp.roll(y, (s, s), axis=(1, 2))
         x = x + y
@@ -204,7 +216,7 @@ class SwinBlock(nn.Module):
         whole map's. Window counts that ``chunk_windows`` does not divide get padding windows
         (no valid key), cut off again after the scan.
         """
-        b, res, _, c = x.shape
+        b, rh, rw, c = x.shape
         ws, s, n = self.window_size, self.shift, self.chunk_windows
         if s:
             x = jnp.roll(x, (-s, -s), axis=(1, 2))
@@ -215,8 +227,9 @@ class SwinBlock(nn.Module):
         x = jnp.pad(x, ((0, 0), (0, pad), (0, 0), (0, 0)))
         x = x.reshape(b, nc, n, t, c).transpose(1, 0, 2, 3, 4)  # [nC, B, n, T, C]
         region = key_ok = None
-        if s > 0 or self.valid < res:
-            region, key_ok = window_masks(res, self.valid, ws, s)
+        vh, vw = _pair(self.valid)
+        if s > 0 or vh < rh or vw < rw:
+            region, key_ok = window_masks((rh, rw), (vh, vw), ws, s)
             region = np.pad(region, ((0, pad), (0, 0))).reshape(nc, n, t)  # [nC, n, T]
             key_ok = np.pad(key_ok, ((0, pad), (0, 0))).reshape(nc, n, t)  # [nC, n, T]
         scan = nn.scan(
@@ -227,7 +240,7 @@ class SwinBlock(nn.Module):
         )
         _, y = scan(self, None, (x, region, key_ok))  # [nC, B, n, T, C]
         y = y.transpose(1, 0, 2, 3, 4).reshape(b, nc * n, t, c)[:, :nw]  # [B, nW, T, C]
-        y = window_reverse(y, ws, res, res)  # [B, R, R, C]
+        y = window_reverse(y, ws, rh, rw)  # [B, R, R', C]
         return jnp.roll(y, (s, s), axis=(1, 2)) if s else y
 
 
@@ -304,20 +317,25 @@ def padded_side(side: int, cfg: BackboneConfig) -> int:
     return -(-side // m) * m
 
 
-def stage_geometry(side: int, cfg: BackboneConfig) -> list[tuple[int, int, int]]:
-    """Per stage ``(res, valid, shift)``: padded side, valid side and the shift its SW-MSA
-    blocks use (0 where one window covers the map)."""
-    res, valid, out = padded_side(side, cfg), side, []
+def stage_geometry(side, cfg: BackboneConfig) -> list[tuple]:
+    """Per stage ``(res, valid, shift)``: padded size, valid size and the shift its SW-MSA
+    blocks use (0 where one window spans the map's shorter side, as in Swin). ``side`` is
+    one int for a square grid (sizes are then ints) or (H, W) (sizes are then pairs)."""
+    square = np.ndim(side) == 0
+    (vh, vw) = _pair(side)
+    rh, rw = padded_side(vh, cfg), padded_side(vw, cfg)
+    out = []
     for stride in cfg.strides:
-        res, valid = res // stride, -(-valid // stride)
-        # As in Swin: no shift when a single window covers the whole map.
-        out.append((res, valid, cfg.shift_size if res > cfg.window_size else 0))
+        rh, rw, vh, vw = rh // stride, rw // stride, -(-vh // stride), -(-vw // stride)
+        shift = cfg.shift_size if min(rh, rw) > cfg.window_size else 0
+        out.append((rh, vh, shift) if square else ((rh, rw), (vh, vw), shift))
     return out
 
 
-def _valid_mask(res: int, valid: int) -> np.ndarray:
-    m = np.zeros((1, res, res, 1), bool)
-    m[:, :valid, :valid] = True
+def _valid_mask(res, valid) -> np.ndarray:
+    (rh, rw), (vh, vw) = _pair(res), _pair(valid)
+    m = np.zeros((1, rh, rw, 1), bool)
+    m[:, :vh, :vw] = True
     return m
 
 
@@ -338,26 +356,25 @@ class SwinBackbone(nn.Module):
         """Run the stages.
 
         Args:
-          x: F_bev [B, H, W, C_enc] with H == W.
+          x: F_bev [B, H, W, C_enc] (H and W may differ).
 
         Returns:
-          Stage index -> map [B, R_k, R_k, C_k] on the padded grid (R_k = padded side /
-          product of strides up to stage k, padded cells zeroed), for the stages in
-          ``config.out_indices`` and always the last stage (the head's input).
+          Stage index -> map [B, R_k, R'_k, C_k] on the padded grid (each side padded to a
+          multiple of ``pad_multiple``, divided by the product of strides up to stage k;
+          padded cells zeroed), for the stages in ``config.out_indices`` and always the last
+          stage (the head's input).
         """
         cfg = self.config
         b, h, w, _ = x.shape
-        if h != w:
-            raise ValueError(f"the backbone needs a square grid, got H x W = {h} x {w}")
-        pad = padded_side(h, cfg) - h
-        x = jnp.pad(x.astype(self.dtype), ((0, 0), (0, pad), (0, pad), (0, 0)))
+        pad_h, pad_w = padded_side(h, cfg) - h, padded_side(w, cfg) - w
+        x = jnp.pad(x.astype(self.dtype), ((0, 0), (0, pad_h), (0, pad_w), (0, 0)))
         block_cls = nn.remat(SwinBlock) if cfg.remat else SwinBlock
         # The full-resolution LayerNorms of the embedding and the merges otherwise keep
         # several map-sized residuals each for the backward pass.
         embed_cls = nn.remat(PatchEmbed) if cfg.remat else PatchEmbed
         merge_cls = nn.remat(PatchMerging) if cfg.remat else PatchMerging
         outs, last = {}, len(cfg.embed_dims) - 1
-        for k, (res, valid, shift) in enumerate(stage_geometry(h, cfg)):
+        for k, (res, valid, shift) in enumerate(stage_geometry((h, w), cfg)):
             dim, stride = cfg.embed_dims[k], cfg.strides[k]
             if k == 0:
                 x = embed_cls(dim, stride, self.dtype, name="patch_embed")(x)
@@ -371,7 +388,7 @@ class SwinBackbone(nn.Module):
                     cfg.chunk_windows, name=f"stage{k}_block{d}",
                 )(x)  # fmt: skip
             # Zero the padding so patch merging and the upsampler only ever mix in zeros.
-            if valid < res:
+            if valid != res:
                 x = jnp.where(_valid_mask(res, valid), x, 0).astype(self.dtype)
             if k in cfg.out_indices or k == last:
                 outs[k] = x
