@@ -376,9 +376,10 @@ def check(config: Config, frames: int, batch_size: int, seed: int, split: str = 
     """
     import time
 
-    for name, value in (("frames", frames), ("batch_size", batch_size)):
-        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-            raise ValueError(f"{name}: expected a whole number > 0, got {value!r}")
+    from indoorbev_jax.cli import check_whole
+
+    check_whole("frames", frames, 1)
+    check_whole("batch_size", batch_size, 1)
 
     import jax
     from indoorbev_sim import generate

@@ -12,7 +12,6 @@ publishing loop, so the rate holds whenever generation keeps up (it says when it
 
 from __future__ import annotations
 
-import math
 import queue
 import threading
 import time
@@ -44,24 +43,15 @@ def scene_frames(config: Config, seed: int, split: str = "test") -> Iterator:
 def check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_timeout) -> None:
     """A ``ValueError`` naming the first setting of ``publish`` that cannot work, before
     the node starts."""
+    from indoorbev_jax.cli import check_positive, check_whole
     from indoorbev_jax.ros2 import check_topic_name
 
-    def number(x) -> bool:
-        return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-    def count(x) -> bool:
-        return isinstance(x, int) and not isinstance(x, bool) and x >= 0
-
-    if not (number(rate) and rate > 0):
-        raise ValueError(f"rate: must be > 0 frames per second, got {rate}")
-    if not count(frames):
-        raise ValueError(f"frames: expected a whole number >= 0 (0: unbounded), got {frames}")
+    check_positive("rate", rate, "frames per second")
+    check_whole("frames", frames, 0, " (0: unbounded)")
     check_topic_name(topic, "topic")
     check_topic_name(objects_topic, "objects_topic")
-    if not count(wait_subscribers):
-        raise ValueError(f"wait_subscribers: expected a whole number >= 0, got {wait_subscribers}")
-    if not (number(wait_timeout) and wait_timeout > 0):
-        raise ValueError(f"wait_timeout: expected seconds > 0, got {wait_timeout}")
+    check_whole("wait_subscribers", wait_subscribers, 0)
+    check_positive("wait_timeout", wait_timeout)
 
 
 def publish(

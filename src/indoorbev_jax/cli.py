@@ -26,9 +26,13 @@ def positive_float(text: str) -> float:
     return value
 
 
+def _bound(minimum: int) -> str:
+    return "> 0" if minimum == 1 else f">= {minimum}"
+
+
 def _whole_number(minimum: int):
     """argparse type: a whole number >= ``minimum`` (0 or 1)."""
-    bound = "> 0" if minimum == 1 else f">= {minimum}"
+    bound = _bound(minimum)
 
     def parse(text: str) -> int:
         try:
@@ -46,6 +50,24 @@ def _whole_number(minimum: int):
 
 positive_int = _whole_number(1)
 nonnegative_int = _whole_number(0)
+
+
+# The same checks for library arguments (what the argparse types above leave to Python
+# callers): a ValueError naming the argument.
+def check_whole(name: str, value, minimum: int, note: str = "") -> int:
+    """``value`` if it is an int (not a bool) >= ``minimum``; ``note`` follows the bound in
+    the message, e.g. " (0: never)"."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name}: expected a whole number {_bound(minimum)}{note}, got {value!r}")
+    return value
+
+
+def check_positive(name: str, value, unit: str = "seconds") -> float:
+    """``value`` if it is a finite number > 0 (not a bool), ``unit`` naming it in the message."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool)
+    if not (ok and math.isfinite(value) and value > 0):
+        raise ValueError(f"{name}: expected {unit} > 0, got {value!r}")
+    return value
 
 
 def _intensity_units(text: str) -> str | float:

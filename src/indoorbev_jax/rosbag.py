@@ -451,6 +451,12 @@ def check_bag_target(bag: str | os.PathLike, topics: Iterable[str]) -> None:
         raise BagError(f"{why}: {detail}; remove it or choose another folder")
 
 
+def partial_path(bag: Path) -> Path:
+    """Where a bag is written until it is complete (``<bag>.partial``); rosbags names the
+    storage file after the bag folder, so the bag itself is ``<bag>.partial/<name>``."""
+    return bag.with_name(bag.name + ".partial")
+
+
 def write_bag(
     bag: str | os.PathLike,
     frames: Iterable[tuple],
@@ -471,8 +477,7 @@ def write_bag(
     ts = typestore()
     bag = Path(bag)
     check_bag_target(bag, (points_topic, objects_topic))
-    # rosbags names the storage file after the bag folder: write <bag>.partial/<name>.
-    partial = bag.with_name(bag.name + ".partial")
+    partial = partial_path(bag)
     if partial.is_dir() and any(p.name != bag.name for p in partial.iterdir()):
         raise FileExistsError(
             f"{partial}: holds files that an interrupted write of {bag} does not leave; "

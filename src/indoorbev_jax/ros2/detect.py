@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import statistics
 import threading
 import time
@@ -209,16 +208,15 @@ def check_settings(topic: str, out_ns: str, log_every: float, max_frames: int) -
     """{output name: topic} of the node, after checking the settings that would otherwise
     fail only once the model has warmed up (or never, silently); a ``ValueError`` names
     the setting."""
+    from indoorbev_jax.cli import check_positive, check_whole
     from indoorbev_jax.ros2 import check_topic_name
 
     check_topic_name(topic, "topic")
     out_topics = {k: f"{out_ns.rstrip('/')}/{k}" for k in OUTPUTS}
     for t in out_topics.values():
         check_topic_name(t, "out_ns")
-    if not (isinstance(log_every, (int, float)) and math.isfinite(log_every) and log_every > 0):
-        raise ValueError(f"log_every: expected seconds > 0, got {log_every}")
-    if isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 0:
-        raise ValueError(f"max_frames: expected a whole number >= 0 (0: never), got {max_frames}")
+    check_positive("log_every", log_every)
+    check_whole("max_frames", max_frames, 0, " (0: never)")
     return out_topics
 
 

@@ -8,6 +8,8 @@ import shutil
 import threading
 from pathlib import Path
 
+from indoorbev_jax.rosbag import partial_path
+
 STORAGES = ("sqlite3", "mcap")
 
 
@@ -25,11 +27,6 @@ def ensure_new(path: str | os.PathLike) -> Path:
             "message); move or delete it, or record into a new folder"
         )
     return path
-
-
-def partial_path(path: Path) -> Path:
-    """Where a recording into ``path`` is written until it is complete."""
-    return path.with_name(path.name + ".partial")
 
 
 class BagRecorder:
@@ -72,7 +69,6 @@ class BagRecorder:
 
         try:
             plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-            # rosbags names the storage file after the bag folder: <path>.partial/<name>.
             writer = Writer(self._partial / self.path.name, version=8, storage_plugin=plugin)
             writer.open()
             conns = {t: writer.add_connection(t, m, typestore=ts) for t, m in topics.items()}
