@@ -35,6 +35,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from indoorbev_jax.cli import check_whole
 from indoorbev_jax.config import Config, flatten_dict
 from indoorbev_jax.data import kitti
 from indoorbev_jax.rosbag import check_bag_target, markers_to_labels, typestore
@@ -189,17 +190,18 @@ def export(
         breath; the resume test uses it to kill an export midway).
 
     Raises:
-      ValueError: frames <= 0 or throttle < 0 (named); ``rosbag`` names an existing path
-        that is not a bag of this export (``BagError``, a ValueError), checked up front.
+      ValueError: frames not a whole number > 0, or throttle not a number >= 0 (named);
+        ``rosbag`` names an existing path that is not a bag of this export (``BagError``, a
+        ValueError), checked up front.
       ExportError: ``out`` holds an export with other settings, or dataset files without
         export.json.
     """
     from tqdm import tqdm
 
-    if frames <= 0:
-        raise ValueError(f"frames: must be > 0, got {frames}")
-    if not (math.isfinite(throttle) and throttle >= 0):
-        raise ValueError(f"throttle: must be a number of seconds >= 0, got {throttle}")
+    check_whole("frames", frames, 1)
+    is_number = isinstance(throttle, int | float) and not isinstance(throttle, bool)
+    if not (is_number and math.isfinite(throttle) and throttle >= 0):
+        raise ValueError(f"throttle: must be a number of seconds >= 0, got {throttle!r}")
     if rosbag is not None:  # write_bag runs last: refuse a bad target before hours of frames
         check_bag_target(rosbag, (POINTS_TOPIC, OBJECTS_TOPIC))
     root = Path(out)

@@ -223,6 +223,12 @@ def test_bad_options_fail_before_any_frame(cache, tmp_path):
     assert [p.name for p in not_a_bag.iterdir()] == ["readme.txt"]
     with pytest.raises(ValueError, match="throttle: must be a number of seconds >= 0, got -1"):
         export_mod.export(out, 4, SEED, CFG, progress=False, throttle=-1)
+    with pytest.raises(ValueError, match="throttle: .* got 'x'"):
+        export_mod.export(out, 4, SEED, CFG, progress=False, throttle="x")
+    for frames in (0, 2.5, True):  # 2.5 used to end in a TypeError from range()
+        expected = f"frames: expected a whole number > 0, got {frames!r}"
+        with pytest.raises(ValueError, match=expected):
+            export_mod.export(out, frames, SEED, CFG, progress=False)
     assert not out.exists()
 
 
