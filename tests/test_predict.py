@@ -528,3 +528,20 @@ def test_auto_intensity_stays_livox_once_seen(model_file):
     fresh = P.Predictor(config, params)
     fresh.prepare(dark)
     assert fresh.last_intensity_factor == 1.0
+
+
+def test_input_listing_skips_hidden_files_and_reads_upper_case_bin(tmp_path):
+    """macOS ``._<id>.bin`` metadata next to a scan is not a frame (its bytes once read as a
+    cloud with intensity > 1 switched "auto" intensity for the real frames); SCAN.BIN is a
+    scan."""
+    scans = _scans(2)
+    for name, scan in zip(("000000", "000001"), scans, strict=True):
+        kitti.write_points(tmp_path / "kitti" / "velodyne" / f"{name}.bin", scan)
+    (tmp_path / "kitti" / "velodyne" / "._000000.bin").write_bytes(b"\0\5\26\7" * 1024)
+    count, frames = P.open_input(tmp_path / "kitti")
+    assert count == 2 and [f.frame_id for f in frames] == ["000000", "000001"]
+    kitti.write_points(tmp_path / "SCAN.BIN", scans[0])
+    count, frames = P.open_input(tmp_path / "SCAN.BIN")
+    (frame,) = list(frames)
+    assert count == 1 and frame.frame_id == "SCAN"
+    np.testing.assert_array_equal(frame.points, scans[0])

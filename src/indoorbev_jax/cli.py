@@ -120,10 +120,11 @@ def dataset_check(args: argparse.Namespace) -> int:
 
     root = Path(args.root)
     problems: list[str] = []
+    warnings: list[str] = []
     try:
         config, source = dataset_config(root, args.preset, args.set)
         ds = KittiDataset(root, args.split, config)
-    except (kitti.DatasetError, ConfigError) as e:
+    except (kitti.DatasetError, ConfigError, OSError) as e:
         print(f"error: {e}")
         return 1
     if len(ds) == 0:
@@ -143,6 +144,22 @@ def dataset_check(args: argparse.Namespace) -> int:
         valid_points.append(stats.valid_points)
         invalid += stats.nonfinite_points + stats.outside_points
         dropped_points += stats.dropped_points
+        # Legal, so warned about rather than failed: a blocked sensor gives an empty cloud and
+        # labels may reach past the grid; but points or labels in mm or in a map frame look so.
+        if stats.raw_points == 0:
+            warnings.append(f"{ds.ids[k]}: an empty cloud")
+        elif stats.valid_points == 0:
+            warnings.append(
+                f"{ds.ids[k]}: none of its {stats.raw_points} points is valid (check the cloud's "
+                "frame and units against the grid's workspace)"
+            )
+        off_grid = int((t.valid & ~t.masks.any(axis=(1, 2))).sum())
+        if off_grid:  # the evaluator leaves such objects out
+            warnings.append(
+                f"{ds.ids[k]}: {off_grid} of {int(t.valid.sum())} objects cover no cell of the "
+                f"grid x {list(config.grid.x_range)} y {list(config.grid.y_range)} m (check "
+                "the labels' frame and units, or --preset)"
+            )
         if stats.dropped_objects:
             dropped_objects += stats.dropped_objects
             problems.append(
@@ -165,12 +182,14 @@ def dataset_check(args: argparse.Namespace) -> int:
     print(f"points beyond data.max_points={config.data.max_points}: {dropped_points}")
     if dropped_objects:
         print(f"objects beyond data.max_objects: {dropped_objects}")
+    for kind, found in (("warnings", warnings), ("problems", problems)):
+        if found:
+            print(f"{kind}: {len(found)}; the first {min(len(found), args.max_problems)}:")
+            for p in found[: args.max_problems]:
+                print(f"  {p}")
     if problems:
-        print(f"problems: {len(problems)}; the first {min(len(problems), args.max_problems)}:")
-        for p in problems[: args.max_problems]:
-            print(f"  {p}")
         return 1
-    print("no problems found")
+    print("no problems found" + (f" ({len(warnings)} warnings above)" if warnings else ""))
     return 0
 
 

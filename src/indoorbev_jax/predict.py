@@ -222,10 +222,10 @@ def open_input(path: str | os.PathLike, topic: str | None = None) -> tuple[int, 
     is_bag = path.is_dir() and (path / "metadata.yaml").exists()
     if topic is not None and path.exists() and not is_bag:
         raise ValueError(f"{path}: --topic {topic} applies to ROS 2 bag input only")
-    if path.is_file() and path.suffix == ".bin":
+    if path.is_file() and path.suffix.lower() == ".bin":
         return 1, _bin_frames([path])
     if (path / "velodyne").is_dir():
-        bins = sorted((path / "velodyne").glob("*.bin"))
+        bins = sorted(p for p in (path / "velodyne").glob("*.bin") if not kitti.is_hidden(p))
         return len(bins), _bin_frames(bins)
     if is_bag:
         from indoorbev_jax.rosbag import count_clouds

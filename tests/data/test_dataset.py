@@ -135,6 +135,28 @@ def test_dataset_check_cli(tmp_path, capsys):
     assert "000002.txt:1: expected 15 fields" in out
 
 
+def test_dataset_check_warns_of_off_grid_objects_and_empty_clouds(tmp_path, capsys):
+    """Legal but suspicious (units, frames): warned about, exit 0; the evaluator would leave
+    the off-grid objects out. Ground truth with a score column is a problem."""
+    make_dataset(tmp_path)
+    far = labels_two_objects()
+    far.pos = far.pos + [30.0, 0.0, 0.0]  # past the tiny grid's 10 m
+    kitti.write_frame(tmp_path, "000003", np.full((50, 4), 20.0, np.float32), far, CLASS_NAMES)
+    argv = ["dataset", "check", str(tmp_path), "--preset", "tiny"]
+    assert cli_main(argv) == 0
+    out = capsys.readouterr().out
+    assert "warnings: 3; the first 3:" in out
+    assert "000001: an empty cloud" in out
+    assert "000003: none of its 50 points is valid" in out
+    assert "000003: 2 of 2 objects cover no cell of the grid x [-5.0, 5.0]" in out
+    assert out.rstrip().endswith("no problems found (3 warnings above)")
+    scored = labels_two_objects()
+    scored.scores = np.ones(2)
+    kitti.write_labels(tmp_path / "label_2" / "000002.txt", scored, CLASS_NAMES)
+    assert cli_main(argv) == 1
+    assert "000002.txt: a score column (16th field); ground truth has 15" in capsys.readouterr().out
+
+
 def test_dataset_commands_take_the_exports_config_and_set(tmp_path, capsys):
     """Without --preset, check and eval read the grid and classes from export.json; --set
     maps a class name; an empty split is a problem; files are world-readable as umask says."""

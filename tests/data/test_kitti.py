@@ -70,6 +70,28 @@ def test_points_round_trip_and_bad_size(tmp_path):
     assert kitti.read_points(tmp_path / "empty.bin").shape == (0, 4)
 
 
+def test_float64_points_are_refused_and_float32_clouds_are_not(tmp_path):
+    """numpy's default float64 passes the size rule (32 bytes a point): random and round
+    values are both named; float32 clouds with NaN rows, zero rows, zero intensity or a flat
+    z, however their sizes fall, are read as written."""
+    rng = np.random.default_rng(0)
+    cloud = np.c_[rng.uniform(-4, 4, (2000, 3)), rng.uniform(0, 1, 2000)]
+    for name, points in (("random", cloud), ("round", np.round(cloud * 4) / 4)):
+        points.tofile(tmp_path / f"{name}.bin")  # float64
+        with pytest.raises(kitti.DatasetError, match=rf"{name}\.bin: looks like float64"):
+            kitti.read_points(tmp_path / f"{name}.bin")
+    f32 = cloud.astype(np.float32)
+    variants = {"plain": f32, "no_intensity": f32 * [1, 1, 1, 0], "flat": f32 * [1, 1, 0, 1]}
+    variants["nan_rows"] = np.where(rng.uniform(size=(2000, 1)) < 0.5, np.nan, f32)
+    variants["zero_rows"] = np.where(rng.uniform(size=(2000, 1)) < 0.8, 0, f32)
+    variants["odd_count"] = f32[:1999]
+    variants["one_point"] = f32[:1]
+    for name, points in variants.items():
+        points = points.astype(np.float32)
+        kitti.write_points(tmp_path / f"{name}.bin", points)
+        np.testing.assert_array_equal(kitti.read_points(tmp_path / f"{name}.bin"), points)
+
+
 def test_empty_label_file_is_valid(tmp_path):
     (tmp_path / "e.txt").write_text("")
     assert len(kitti.read_labels(tmp_path / "e.txt", DATA)) == 0
@@ -92,6 +114,10 @@ GOOD = "Table 0.00 0 -10 0 0 0 0 1.0 1.0 1.0 0.0 0.0 2.0 0.0"
         (GOOD.replace("0.00 0 -10", "1.50 0 -10"), r"l\.txt:2: truncation .* got 1\.50"),
         (GOOD.replace("1.0 1.0 1.0", "-1.0 1.0 1.0"), r"l\.txt:2: dimensions h w l must be"),
         (GOOD + " 0.9", r"l\.txt:2: some lines .* \(line 2 has one, line 1 has none\)"),
+        # float() reads "0_5" as 5.0; 1e39 is finite in float64 but inf in float32.
+        (GOOD.replace("2.0", "0_5"), r"l\.txt:2: non-numeric field \('_' in '0_5'\)"),
+        (GOOD.replace("2.0", "1e39"), r"l\.txt:2: non-finite"),
+        (GOOD + " -1e39", r"l\.txt:2: non-finite .* score"),
     ],
 )
 def test_bad_label_lines_name_file_and_line(tmp_path, line, message):
@@ -121,6 +147,43 @@ def test_mask_round_trip_and_wrong_size(tmp_path):
         kitti.read_mask(tmp_path / "m.png", (50, 50))
 
 
+def test_masks_must_be_png_of_integer_ids(tmp_path):
+    """8-bit grey and palette PNGs hold ids; a JPEG (lossy: ids change) or a float TIFF saved
+    under .png does not, and is named."""
+    from PIL import Image
+
+    shape = Config.tiny().grid.shape
+    ids = np.random.default_rng(0).integers(0, 5, shape).astype(np.uint8)
+    Image.fromarray(ids, "L").save(tmp_path / "grey.png")
+    palette = Image.fromarray(ids, "L").convert("P")
+    palette.save(tmp_path / "palette.png")
+    for name in ("grey", "palette"):
+        np.testing.assert_array_equal(kitti.read_mask(tmp_path / f"{name}.png", shape), ids)
+    Image.fromarray(ids, "L").save(tmp_path / "jpeg.png", format="JPEG")
+    with pytest.raises(kitti.DatasetError, match=r"jpeg\.png: a JPEG image .* expected a PNG"):
+        kitti.read_mask(tmp_path / "jpeg.png", shape)
+    Image.fromarray(ids.astype(np.float32), "F").save(tmp_path / "float.png", format="TIFF")
+    with pytest.raises(kitti.DatasetError, match=r"float\.png: a TIFF image in mode F"):
+        kitti.read_mask(tmp_path / "float.png", shape)
+
+
+def test_split_files_from_other_editors(tmp_path):
+    """A byte-order mark and CRLF (Windows editors) are read; a split that is not UTF-8 or
+    is a folder is a DatasetError naming it; hidden files are not frames."""
+    (tmp_path / "bom.txt").write_bytes(b"\xef\xbb\xbf000000\r\n000001\r\n")
+    assert kitti.read_split(tmp_path, "bom") == ["000000", "000001"]
+    (tmp_path / "latin.txt").write_bytes(b"000000\n\xff000001\n")
+    with pytest.raises(kitti.DatasetError, match=r"latin\.txt:2: not a UTF-8 text file"):
+        kitti.read_split(tmp_path, "latin")
+    (tmp_path / "folder.txt").mkdir()
+    with pytest.raises(kitti.DatasetError, match=r"folder\.txt: cannot read the split file"):
+        kitti.read_split(tmp_path, "folder")
+    (tmp_path / "label_2").mkdir()
+    for name in ("000000.txt", "._000000.txt", ".hidden.txt"):
+        (tmp_path / "label_2" / name).write_text("")
+    assert kitti.list_frames(tmp_path) == ["000000"]
+
+
 def test_atomic_write_leaves_no_partial_file(tmp_path):
     class Boom(Exception):
         pass
@@ -144,7 +207,10 @@ def test_dontcare_blank_lines_and_bom_are_not_objects(tmp_path):
     labels = kitti.read_labels(tmp_path / "l.txt", DATA)
     assert labels.classes.tolist() == [CLASS_NAMES.index("Table"), CLASS_NAMES.index("Chair")]
     (tmp_path / "bad.txt").write_bytes(b"Table \xff\xfe\n")
-    with pytest.raises(kitti.DatasetError, match=r"bad\.txt: not a UTF-8 text file"):
+    with pytest.raises(kitti.DatasetError, match=r"bad\.txt:1: not a UTF-8 text file"):
+        kitti.read_labels(tmp_path / "bad.txt", DATA)
+    (tmp_path / "bad.txt").write_bytes(GOOD.encode() + b"\r\nTable \xe4\n")
+    with pytest.raises(kitti.DatasetError, match=r"bad\.txt:2: not a UTF-8 .* b'\\xe4'"):
         kitti.read_labels(tmp_path / "bad.txt", DATA)
 
 

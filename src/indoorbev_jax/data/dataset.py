@@ -188,6 +188,10 @@ class KittiDataset:
         cfg = self.config
         raw = kitti.read_points(paths["points"])
         labels = kitti.read_labels(paths["labels"], cfg.data)
+        if labels.scores is not None:  # predictions; their sizes were not checked either
+            raise kitti.DatasetError(
+                f"{paths['labels']}: a score column (16th field); ground truth has 15 fields"
+            )
         ids = kitti.read_mask(paths["mask"], cfg.grid.shape) if paths["mask"].exists() else None
         if ids is not None and ids.max(initial=0) > len(labels):
             raise kitti.DatasetError(

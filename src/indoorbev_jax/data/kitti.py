@@ -37,6 +37,10 @@ from PIL import Image
 from indoorbev_jax.config import DataConfig
 from indoorbev_jax.geometry import wrap_angle
 
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+# PIL modes of integer single-channel images: 8-bit grey, palette, 16- and 32-bit grey.
+_ID_MODES = ("L", "P", "I;16", "I;16B", "I;16L", "I")
+
 
 class DatasetError(ValueError):
     """A dataset file is malformed; the message names the file (and line)."""
@@ -129,7 +133,30 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
         raise DatasetError(
             f"{path}: size {size} bytes is not a multiple of 16 (float32 x, y, z, intensity)"
         )
-    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    words = np.fromfile(path, dtype=np.float32)
+    if _looks_like_float64(words):
+        raise DatasetError(
+            f"{path}: looks like float64 values (read as float32 they are mostly absurd); "
+            "expected float32 x, y, z, intensity (points.astype(np.float32).tofile(path))"
+        )
+    return words.reshape(-1, 4)
+
+
+def _looks_like_float64(words: np.ndarray) -> bool:
+    """Whether float32 ``words`` are rather the halves of finite float64 points: numpy's
+    default dtype has the same size rule (32 bytes a point), so size alone cannot tell."""
+    if words.size == 0 or words.size % 8:
+        return False
+    doubles = words.view(np.float64).reshape(-1, 4)
+    if not np.isfinite(doubles).all() or np.abs(doubles[:, :3]).max() > 1e4:
+        return False
+    xyz = np.abs(words.reshape(-1, 4)[:, :3])
+    xyz = xyz[xyz != 0]
+    # The low halves of doubles read as float32 are huge, tiny or not finite; or all zero
+    # when the doubles are round numbers (the high halves then look plausible).
+    absurd = ~np.isfinite(xyz) | (xyz > 1e6) | (xyz < 1e-20)
+    low_zero = np.mean(words[0::2] == 0) > 0.9 and np.mean(words[1::2] != 0) > 0.5
+    return bool(xyz.size and absurd.mean() > 0.2) or bool(low_zero)
 
 
 def write_points(path: str | os.PathLike, points: np.ndarray) -> None:
@@ -204,6 +231,8 @@ def parse_label_lines(lines: list[str], data: DataConfig, source: str) -> Object
                 f"{list(data.class_names)} or a name mapped in data.class_map)",
             ) from None  # fmt: skip
         try:
+            if any("_" in v for v in fields[1:]):  # float() reads "0_5" as 5.0
+                raise ValueError(f"'_' in {next(v for v in fields[1:] if '_' in v)!r}")
             values = [float(v) for v in fields[1:]]
         except ValueError as e:
             raise _label_error(source, lineno, f"non-numeric field ({e})") from None
@@ -212,7 +241,8 @@ def parse_label_lines(lines: list[str], data: DataConfig, source: str) -> Object
             raise _label_error(source, lineno, f"truncation must lie in [0, 1], got {fields[1]}")
         if occlusion not in (0.0, 1.0, 2.0, 3.0):
             raise _label_error(source, lineno, f"occlusion must be 0, 1, 2 or 3, got {fields[2]}")
-        if not all(math.isfinite(v) for v in values[7:]):
+        if not all(math.isfinite(v) and abs(v) <= _FLOAT32_MAX for v in values[7:]):
+            # Past float32's range a value turns into inf in the arrays built from it.
             raise _label_error(source, lineno, "non-finite dimensions, location, angle or score")
         if len(fields) == 15 and not all(v > 0 for v in values[7:10]):
             # Ground truth only: a prediction's regressed size may come out <= 0.
@@ -248,14 +278,23 @@ def parse_label_lines(lines: list[str], data: DataConfig, source: str) -> Object
     )
 
 
+def _read_lines(path: Path) -> list[str]:
+    """The lines of a UTF-8 text file; a leading byte-order mark (Windows editors) is not
+    part of the first line. An undecodable byte is named by its line."""
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = raw[: e.start].count(b"\n") + 1
+        raise DatasetError(f"{path}:{line}: not a UTF-8 text file ({e.reason} at byte "
+                           f"{e.start}: {raw[e.start:e.start + 1]!r})") from None  # fmt: skip
+    return text.splitlines()
+
+
 def read_labels(path: str | os.PathLike, data: DataConfig) -> ObjectLabels:
     """Reads a ``label_2/*.txt`` file. Errors name the file and line."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")  # a leading byte-order mark is not a name
-    except UnicodeDecodeError as e:
-        raise DatasetError(f"{path}: not a UTF-8 text file ({e})") from None
-    return parse_label_lines(text.splitlines(), data, str(path))
+    return parse_label_lines(_read_lines(path), data, str(path))
 
 
 # Masks -------------------------------------------------------------------------------------
@@ -266,9 +305,16 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     path = Path(path)
     try:
         with Image.open(path) as im:
+            image_format, mode = im.format, im.mode
             ids = np.asarray(im)
     except OSError as e:
         raise DatasetError(f"{path}: not a readable PNG ({e})") from None
+    # A JPEG's lossy compression changes ids silently, and float images hold no ids.
+    if image_format != "PNG" or mode not in _ID_MODES:
+        raise DatasetError(
+            f"{path}: a {image_format} image in mode {mode}; expected a PNG of integer "
+            "instance ids (16-bit grey, or 8-bit grey / palette)"
+        )
     if ids.shape != tuple(shape):
         raise DatasetError(
             f"{path}: mask of shape {ids.shape} (H, W), expected {tuple(shape)} from the grid"
@@ -321,8 +367,12 @@ def read_split(root: str | os.PathLike, split: str) -> list[str]:
     path = Path(root) / f"{split}.txt"
     if not path.exists():
         raise DatasetError(f"{path}: split file not found")
+    try:
+        lines = _read_lines(path)
+    except OSError as e:  # a folder, say
+        raise DatasetError(f"{path}: cannot read the split file ({e.strerror})") from None
     ids, first_line = [], {}
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    for n, line in enumerate(lines, 1):
         frame_id = line.strip()
         if not frame_id:
             continue
@@ -341,5 +391,11 @@ def write_split(root: str | os.PathLike, split: str, ids: list[str]) -> None:
 
 
 def list_frames(root: str | os.PathLike) -> list[str]:
-    """Frame ids that have a label file, sorted."""
-    return sorted(p.stem for p in (Path(root) / "label_2").glob("*.txt"))
+    """Frame ids that have a label file, sorted; hidden files (macOS ``._*``) are not frames."""
+    return sorted(p.stem for p in (Path(root) / "label_2").glob("*.txt") if not is_hidden(p))
+
+
+def is_hidden(path: Path) -> bool:
+    """Dot files: pathlib's glob matches them, but they are not frames (macOS writes ``._x``
+    metadata files next to every file copied to a foreign disk)."""
+    return path.name.startswith(".")
