@@ -38,8 +38,8 @@ from indoorbev_jax.config import DataConfig
 from indoorbev_jax.geometry import wrap_angle
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
-# PIL modes of integer single-channel images: 8-bit grey, palette, 16- and 32-bit grey.
-_ID_MODES = ("L", "P", "I;16", "I;16B", "I;16L", "I")
+# PIL modes of integer single-channel images: 1-bit, 8-bit grey, palette, 16- and 32-bit grey.
+_ID_MODES = ("1", "L", "P", "I;16", "I;16B", "I;16L", "I")
 
 
 class DatasetError(ValueError):
