@@ -552,17 +552,31 @@ def cast_geometry(
     directions = jnp.asarray(directions, jnp.float32)
     if origins.shape[-1:] != (3,) or origins.ndim > 2:
         raise ValueError(f"origins must be [3] or [B, 3], got {origins.shape}")
+    if directions.shape[-1:] != (3,) or directions.ndim not in (2, 3):
+        raise ValueError(f"directions must be [R, 3] or [B, R, 3], got {directions.shape}")
+    if nscene == 1 and directions.ndim == 3 and directions.shape[0] > 1:
+        # B ray sets in one scene: the scene is shared (a broadcast of its few fields).
+        nscene = directions.shape[0]
+        geo = jax.tree.map(lambda x: jnp.broadcast_to(x, (nscene,) + x.shape[1:]), geo)
     if origins.ndim == 2 and origins.shape[0] not in (1, nscene):
         raise ValueError(
             f"origins [B, 3] holds one origin per scene ({nscene} here), got {origins.shape}; "
             "for several origins in one scene, jax.vmap the cast over the origins"
         )
-    if directions.shape[-1:] != (3,) or directions.ndim not in (2, 3):
-        raise ValueError(f"directions must be [R, 3] or [B, R, 3], got {directions.shape}")
+    if directions.ndim == 3 and directions.shape[0] not in (1, nscene):
+        raise ValueError(
+            f"directions [B, R, 3] hold one ray set per scene ({nscene} here), got "
+            f"{directions.shape}"
+        )
     single = origins.ndim == 1 and directions.ndim == 2
     method = _resolve_method(method)
     nray = directions.shape[-2]
     dirs = jnp.broadcast_to(directions.reshape(-1, nray, 3), (nscene, nray, 3))
+    # mj_ray refuses a direction shorter than mjMINVAL; here such a ray (or a non-finite
+    # one) is a miss, and the kernels see a harmless unit vector in its place.
+    length = jnp.linalg.norm(dirs, axis=-1)
+    castable = jnp.isfinite(length) & (length >= rc.MINVAL)
+    dirs = jnp.where(castable[..., None], dirs, jnp.array([1.0, 0.0, 0.0], jnp.float32))
     origin = jnp.broadcast_to(origins.reshape(-1, 3), (nscene, 3))
     mr = jnp.broadcast_to(jnp.asarray(max_range, jnp.float32).reshape(-1), (nscene,))
     if method == "jax":
@@ -573,6 +587,8 @@ def cast_geometry(
         if threads < 1:
             raise ValueError(f"cpu_threads must be >= 1, got {cpu_threads}")
         dist, gid = _batched_caster(method, cells, int(capacity), threads)(geo, dirs, origin, mr)
+    dist = jnp.where(castable, dist, -1.0)
+    gid = jnp.where(castable, gid, -1)
     if single and nscene == 1:
         return dist[0], gid[0]
     return dist, gid
@@ -604,7 +620,9 @@ def cast_rays(
       model: ``mjx.Model`` (one scene; or geom_size etc. batched over B scenes).
       data: ``mjx.Data`` of one scene (``geom_xpos`` [G, 3]) or B scenes ([B, G, 3]).
       origins: float [3] or [B, 3], world frame.
-      directions: float [R, 3] or [B, R, 3], unit vectors, world frame.
+      directions: float [R, 3] or [B, R, 3], unit vectors, world frame (a direction of
+        length < mjMINVAL, or not finite, is a miss; ``mj_ray`` raises on it). With one
+        scene, B ray sets [B, R, 3] are cast in that scene, giving [B, R].
       max_range: float scalar or [B]; hits farther than this count as misses.
       geomgroup: optional 6 flags (``mj_ray``'s geomgroup); None includes every group.
       flg_static: include geoms of bodies welded to the world (``mj_ray``'s flg_static).

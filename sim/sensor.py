@@ -218,7 +218,7 @@ class MjLidar:
         **cast_kwargs,
     ):
         import mujoco
-        from mujoco import mjx
+        from indoorbev_sim.scenes import GeomData, GeomModel
 
         site_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
         if site_id < 0:
@@ -227,15 +227,26 @@ class MjLidar:
         self.model, self.site_id = model, site_id
         body = int(model.site_bodyid[site_id])
         cast_kwargs.setdefault("bodyexclude", body if body > 0 else -1)
-        mx = mjx.put_model(model)
-        template = mjx.make_data(mx)
+        # Only the fields rays read: mjx.put_model would refuse many robot models for
+        # collision pairs MJX lacks (cylinder-box, meshes), which a lidar never needs.
+        geoms = GeomModel(
+            geom_size=jnp.asarray(model.geom_size, jnp.float32),
+            geom_rgba=jnp.asarray(model.geom_rgba, jnp.float32),
+            geom_matid=jnp.asarray(model.geom_matid, jnp.int32),
+            mat_rgba=jnp.asarray(model.mat_rgba, jnp.float32).reshape(-1, 4),
+            geom_type=np.asarray(model.geom_type),
+            geom_bodyid=np.asarray(model.geom_bodyid),
+            geom_group=np.asarray(model.geom_group),
+            body_weldid=np.asarray(model.body_weldid),
+            nbody=model.nbody,
+        )
         refl = None if reflectivity is None else jnp.asarray(reflectivity, jnp.float32)
 
         def run(geom_xpos, geom_xmat, site_pos, site_mat, frame, key):
-            data = template.replace(geom_xpos=geom_xpos, geom_xmat=geom_xmat)
+            data = GeomData(geom_xpos=geom_xpos, geom_xmat=geom_xmat)
             pose = Pose(site_pos, site_mat.reshape(3, 3))
             dirs = pattern.frame(frame).directions
-            return scan(mx, data, pose, dirs, key, config, reflectivity=refl, **cast_kwargs)
+            return scan(geoms, data, pose, dirs, key, config, reflectivity=refl, **cast_kwargs)
 
         self._run = jax.jit(run)
 

@@ -401,3 +401,36 @@ def test_warp_prints_nothing_on_stdout():
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert run.stdout == ""
+
+
+@pytest.mark.parametrize("method", ["binned", "brute", "jax"])
+def test_degenerate_directions_miss_and_one_scene_takes_ray_sets(method):
+    """A zero, tiny, NaN or infinite direction is a miss (-1, -1) for every method (mj_ray
+    refuses it; the box test once answered 1e30 m from inside a box); the other rays of the
+    call are untouched. One scene with ray sets [B, R, 3] gives [B, R], each set as cast on
+    its own; a ray-set count other than the scenes' is named."""
+    m = mujoco.MjModel.from_xml_string(random_scene_xml(5, n=8))
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    mx, dx = mjx.put_model(m), mjx.put_data(m, d)
+    rng = np.random.default_rng(8)
+    dirs = unit_rays(rng, 64)
+    bad = np.array([[0, 0, 0], [1e-20, 0, 0], [np.nan, 0, 0], [np.inf, 0, 1]], np.float32)
+    origin = np.zeros(3, np.float32)  # inside or near some geoms of the random scene
+    dist, gid = _cast[method](mx, dx, origin, jnp.asarray(np.r_[bad, dirs]))
+    np.testing.assert_array_equal(np.asarray(dist[:4]), -1.0)
+    np.testing.assert_array_equal(np.asarray(gid[:4]), -1)
+    ref_d, ref_g = mj_ray_reference(m, d, origin.astype(np.float64), dirs)
+    np.testing.assert_allclose(np.asarray(dist[4:]), ref_d, atol=1e-4)
+    np.testing.assert_array_equal(np.asarray(gid[4:]), ref_g)
+    sets = unit_rays(rng, 3 * 50).reshape(3, 50, 3)
+    origins = rng.uniform(-1, 1, (3, 3)).astype(np.float32)
+    dist, gid = _cast[method](mx, dx, origins, jnp.asarray(sets))
+    assert dist.shape == gid.shape == (3, 50)
+    for b in range(3):
+        ref_d, ref_g = mj_ray_reference(m, d, origins[b].astype(np.float64), sets[b])
+        np.testing.assert_allclose(np.asarray(dist[b]), ref_d, atol=1e-4)
+        np.testing.assert_array_equal(np.asarray(gid[b]), ref_g)
+    two = jax.tree.map(lambda x: jnp.stack([x, x]), dx)
+    with pytest.raises(ValueError, match=r"one ray set per scene \(2 here\), got \(3, 50, 3\)"):
+        lidar.cast_rays(mx, two, origins[:2], sets, MAX_RANGE, method=method)

@@ -180,3 +180,40 @@ def test_mjlidar_does_not_see_its_own_body():
         mujoco.mj_ray(m, d, site, v, None, 1, m.body("robot").id, out)
         ref.append(out[0])
     np.testing.assert_array_equal(own, ref)
+
+
+def test_mjlidar_takes_robot_models_mjx_refuses():
+    """An ordinary robot MJCF: geoms that collide (contype 1: a cylinder-box pair MJX lacks),
+    a mesh on the robot (skipped), a material with alpha 0 (invisible to mj_ray). MjLidar
+    needs no collision support; its hits equal mj_ray's with the robot body excluded."""
+    from indoorbev_sim import patterns
+
+    xml = """<mujoco><asset><material name="glass" rgba="1 1 1 0"/>
+      <mesh name="tet" vertex="0 0 0 .1 0 0 0 .1 0 0 0 .1"/></asset><worldbody>
+      <geom type="plane" size="0 0 1"/>
+      <geom type="box" size=".1 3 1" pos="3 0 1"/>
+      <geom type="box" size=".1 3 1" pos="-3 0 1" material="glass"/>
+      <geom type="sphere" size=".3" pos="1 1 .5"/>
+      <body name="robot" pos="0 0 .3"><freejoint/><geom type="cylinder" size=".2 .2"/>
+        <geom type="mesh" mesh="tet" pos="0 0 .2"/><site name="lidar" pos="0 0 .35"/></body>
+      </worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    with pytest.raises(NotImplementedError):  # why MjLidar must not go through MJX
+        mjx.put_model(m)
+    pattern = patterns.GridPattern(90, 8)
+    cfg = sensor.SensorConfig(range_noise_std=0.0, dropout_prob=0.0, min_range=0.0)
+    got = sensor.MjLidar(m, "lidar", pattern, cfg, skip_unsupported=True)(d, jax.random.key(0))
+    site = m.site("lidar").id
+    dirs = np.asarray(pattern.frame(0).directions, np.float64) @ d.site_xmat[site].reshape(3, 3).T
+    out = np.zeros(1, np.int32)
+    ref_d, ref_g = [], []
+    for v in dirs:
+        ref_d.append(mujoco.mj_ray(m, d, d.site_xpos[site], v, None, 1, m.body("robot").id, out))
+        ref_g.append(out[0])
+    ref_d, ref_g = np.asarray(ref_d), np.asarray(ref_g)
+    np.testing.assert_array_equal(np.asarray(got.geom_id), ref_g)
+    np.testing.assert_allclose(np.asarray(got.distance)[ref_g >= 0], ref_d[ref_g >= 0], atol=1e-4)
+    assert m.geom_matid[2] >= 0 and not (ref_g == 2).any()  # the glass wall is not hit
+    assert {1, 3} <= set(ref_g.tolist())  # the wall and the sphere are seen
