@@ -179,12 +179,15 @@ def simulate(
     geom_slot = jnp.asarray(tpl.geom_slot)
     point_slot = jnp.where(scan.geom_id >= 0, geom_slot[jnp.maximum(scan.geom_id, 0)], -1)
 
-    # Visibility: one ray per primitive, aimed at its centre.
+    # Visibility: one ray per primitive, aimed at its centre; it sees the primitive only
+    # where the sensor could fire it (field of view, min_range).
     target, _ = jax.vmap(functools.partial(labels_mod.visibility_targets, tpl))(scene, time)
     to_target = target - origin[:, None]  # [B, S * P, 3]
     vdirs = to_target / jnp.maximum(jnp.linalg.norm(to_target, axis=-1, keepdims=True), 1e-9)
-    _, vgeom = lidar.cast_rays(model, data, origin, vdirs, sim.max_range)
-    vis_slot = jnp.where(vgeom >= 0, geom_slot[jnp.maximum(vgeom, 0)], -1)
+    vdist, vgeom = lidar.cast_rays(model, data, origin, vdirs, sim.max_range)
+    in_view = make_pattern(sim).covers(jnp.einsum("brj,bji->bri", vdirs, pose.rot))
+    fired = (vgeom >= 0) & in_view & (vdist >= sim.min_range)
+    vis_slot = jnp.where(fired, geom_slot[jnp.maximum(vgeom, 0)], -1)
 
     per_slot = jax.vmap(functools.partial(labels_mod.object_labels, tpl, config=config))(
         scene, time, origin, heading, point_slot, valid, vis_slot
@@ -467,8 +470,13 @@ def reference_frame(
     _, ppos, _, pon = _np_world_prims(scene, time)
     to = ppos.reshape(-1, 3) - origin
     vd = to / np.maximum(np.linalg.norm(to, axis=-1, keepdims=True), 1e-9)
-    _, vg = reference_cast(tpl, size, xpos, xmat, origin, vd, sim.max_range)
-    vslot = np.where(vg >= 0, tpl.geom_slot[np.maximum(vg, 0)], -1).reshape(s, -1)
+    vdist, vg = reference_cast(tpl, size, xpos, xmat, origin, vd, sim.max_range)
+    elevation = np.arcsin(np.clip((vd @ rot)[:, 2], -1, 1))  # the sensor frame's
+    pattern = make_pattern(sim)
+    lo, hi = _elevation_limits(pattern)
+    fired = (vg >= 0) & (elevation >= lo - 1e-6) & (elevation <= hi + 1e-6)
+    fired &= vdist >= sim.min_range
+    vslot = np.where(fired, tpl.geom_slot[np.maximum(vg, 0)], -1).reshape(s, -1)
     seen = (vslot == np.arange(s)[:, None]) & pon
     visibility = seen.sum(-1) / np.maximum(pon.sum(-1), 1)
     c, sn = np.cos(heading), np.sin(heading)
@@ -494,6 +502,16 @@ def reference_frame(
         "yaw": (pose[:, 2] - heading + np.pi) % (2 * np.pi) - np.pi,
         "reflectivity": refl,
     }
+
+
+def _elevation_limits(pattern) -> tuple[float, float]:
+    """(lowest, highest) ray elevation of a full-turn pattern, radians (the reference's own
+    reading of the pattern's settings, apart from ``covers``)."""
+    if hasattr(pattern, "elevations_deg"):
+        lo, hi = min(pattern.elevations_deg), max(pattern.elevations_deg)
+    else:
+        lo, hi = pattern.elevation_min_deg, pattern.elevation_max_deg
+    return float(np.deg2rad(lo)), float(np.deg2rad(hi))
 
 
 @functools.lru_cache(maxsize=4)

@@ -13,9 +13,10 @@ Everything is in the lidar frame (x forward, y left, z up, origin at the sensor)
 * Points: a lidar return belongs to the object whose geom the ray hit (``geom_id``);
   ``num_points`` counts the valid returns inside the workspace.
 * Occlusion: one extra ray from the sensor to the centre of each of the object's
-  primitives; ``visibility`` is the fraction of them whose first hit is the object itself.
-  KITTI level 0 (visibility >= 0.75), 1 (>= 0.4), 2 (> 0, or seen by points only), 3 (not
-  seen at all).
+  primitives; ``visibility`` is the fraction of them whose first hit is the object itself,
+  on a ray the sensor could fire (``generate.simulate`` drops rays outside the pattern's
+  field of view or within ``sim.min_range``). KITTI level 0 (visibility >= 0.75), 1
+  (>= 0.4), 2 (> 0, or seen by points only), 3 (not seen at all).
 * Which objects are labelled: placed objects with at least ``sim.min_points`` returns
   whose box centre lies inside the workspace (x, y within the grid). An object crossing the
   workspace edge keeps its full box; its footprint mask is clipped to the grid, and its

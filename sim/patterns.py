@@ -2,8 +2,9 @@
 
 Every pattern is a frozen dataclass whose ``frame(k)`` is a pure, jittable function of the
 frame index ``k`` (a Python int or a traced int32 scalar) returning a ``ScanFrame``. The ray
-count ``num_rays`` is static. Sensor frame: x forward, y left, z up; azimuth about +z from +x,
-elevation above the x-y plane.
+count ``num_rays`` is static, and ``covers(directions)`` says which directions (sensor frame)
+lie in the pattern's field of view. Sensor frame: x forward, y left, z up; azimuth about +z
+from +x, elevation above the x-y plane.
 
 Patterns:
   * ``Mid360Pattern``: Livox MID-360-like non-repetitive scan written from the public spec
@@ -42,6 +43,17 @@ class ScanFrame:
     directions: jax.Array
     time_offsets: jax.Array
     start_time: jax.Array
+
+
+def _elevation(directions: jax.Array) -> jax.Array:
+    """Elevation (radians) of directions [..., 3] in the sensor frame."""
+    unit = directions / jnp.maximum(jnp.linalg.norm(directions, axis=-1, keepdims=True), 1e-12)
+    return jnp.arcsin(jnp.clip(unit[..., 2], -1.0, 1.0))
+
+
+def _within(angle: jax.Array, lo_deg: float, hi_deg: float) -> jax.Array:
+    slack = 1e-6  # float32 rounding of rays fired exactly at a limit
+    return (angle >= np.deg2rad(lo_deg) - slack) & (angle <= np.deg2rad(hi_deg) + slack)
 
 
 def spherical_to_unit(azimuth: jax.Array, elevation: jax.Array) -> jax.Array:
@@ -93,6 +105,10 @@ class Mid360Pattern:
     @property
     def num_rays(self) -> int:
         return int(round(self.points_per_second / self.frame_rate))
+
+    def covers(self, directions: jax.Array) -> jax.Array:
+        """bool [...]: whether the field of view holds directions [..., 3] (sensor frame)."""
+        return _within(_elevation(directions), self.elevation_min_deg, self.elevation_max_deg)
 
     def frame(self, k) -> ScanFrame:
         """Frame k: directions [R, 3] (R = points_per_second / frame_rate) and firing times."""
@@ -161,6 +177,12 @@ class SpinningPattern:
     def num_rays(self) -> int:
         return self.columns * len(self.elevations_deg)
 
+    def covers(self, directions: jax.Array) -> jax.Array:
+        """bool [...]: whether directions [..., 3] (sensor frame) lie between the lowest and
+        the highest beam (the gaps between beams count as covered)."""
+        lo, hi = min(self.elevations_deg), max(self.elevations_deg)
+        return _within(_elevation(directions), lo, hi)
+
     def frame(self, k) -> ScanFrame:
         """Frame k: column-major rays [columns * beams, 3]; a spinner repeats every frame."""
         col = jnp.arange(self.columns, dtype=jnp.float32)
@@ -198,6 +220,18 @@ class GridPattern:
     @property
     def num_rays(self) -> int:
         return self.azimuth_steps * self.elevation_steps
+
+    def covers(self, directions: jax.Array) -> jax.Array:
+        """bool [...]: whether directions [..., 3] (sensor frame) lie in the grid's
+        elevation and azimuth spans."""
+        inside = _within(_elevation(directions), self.elevation_min_deg, self.elevation_max_deg)
+        if np.isclose(self.azimuth_max_deg - self.azimuth_min_deg, 360.0):
+            return inside
+        azimuth = jnp.arctan2(directions[..., 1], directions[..., 0])
+        # Azimuth measured from the span's start, in [0, 2 pi).
+        offset = jnp.mod(azimuth - np.deg2rad(self.azimuth_min_deg), 2 * np.pi)
+        span = np.deg2rad(self.azimuth_max_deg - self.azimuth_min_deg)
+        return inside & (offset <= span + 1e-6)
 
     def frame(self, k) -> ScanFrame:
         """Frame k: rays [azimuth_steps * elevation_steps, 3], azimuth-major."""

@@ -102,3 +102,28 @@ def test_bad_patterns_raise_naming_the_field():
         patterns.SpinningPattern(())
     with pytest.raises(ValueError, match="azimuth_steps"):
         patterns.GridPattern(0, 4)
+
+
+def test_covers_every_ray_of_a_frame_and_nothing_past_the_limits():
+    """``covers``: each pattern's own rays are in its field of view; directions a little
+    past the elevation limits (and, for a partial grid, the azimuth span) are not."""
+    from indoorbev_sim.patterns import _elevation
+
+    grid_part = patterns.GridPattern(36, 8, azimuth_min_deg=-60.0, azimuth_max_deg=60.0)
+    cases = [
+        (patterns.Mid360Pattern(points_per_second=40_000), -7.0, 52.0),
+        (patterns.SpinningPattern.vlp16(), -15.0, 15.0),
+        (patterns.GridPattern(36, 8), -30.0, 30.0),
+        (grid_part, -30.0, 30.0),
+    ]
+    for pattern, lo, hi in cases:
+        rays = pattern.frame(3).directions
+        assert bool(pattern.covers(rays).all()), pattern
+        el = np.asarray(_elevation(rays))
+        assert np.rad2deg(el.min()) >= lo - 1e-3 and np.rad2deg(el.max()) <= hi + 1e-3
+        for deg in (lo - 0.5, hi + 0.5, -89.0, 89.0):
+            off = patterns.spherical_to_unit(jnp.float32(0.0), jnp.deg2rad(jnp.float32(deg)))
+            assert not bool(pattern.covers(off)), (pattern, deg)
+    behind = patterns.spherical_to_unit(jnp.deg2rad(jnp.float32(120.0)), jnp.float32(0.0))
+    assert not bool(grid_part.covers(behind))
+    assert bool(patterns.GridPattern(36, 8).covers(behind))
