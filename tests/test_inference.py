@@ -127,6 +127,11 @@ def test_jittable_inside_outer_jit_and_checks_shapes():
     as_dict = {k: preds[k] for k in preds.keys()}
     a, b = panoptic_inference(preds), panoptic_inference(as_dict)
     np.testing.assert_array_equal(np.asarray(a.instance_ids), np.asarray(b.instance_ids))
+    # Only logits and masks are read: a dict of those two is enough.
+    c = panoptic_inference({"logits": preds["logits"], "masks": preds["masks"]})
+    np.testing.assert_array_equal(np.asarray(a.instance_ids), np.asarray(c.instance_ids))
+    with pytest.raises(TypeError, match=r"missing \['logits'"):
+        panoptic_inference({"masks": preds["masks"]})
 
 
 def test_identical_queries_tie_to_the_lower_index():

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Mapping
 
 import jax
 import jax.numpy as jnp
@@ -160,23 +161,24 @@ def panoptic_inference(
     """``panoptic_inference_from_logits`` on the last decoder layer of ``predictions``.
 
     Args:
-      predictions: network outputs (``Predictions`` or a dict of its fields); logits
+      predictions: network outputs (``Predictions``, or a dict of its fields: only
+        ``logits`` and ``masks`` are read, so a dict of those two will do); logits
         [L, B, Q, K], masks [L, B, Q, H, W].
       config: thresholds; None: ``InferenceConfig()``.
 
     Returns:
       A ``PanopticOutput`` for the B frames.
     """
-    predictions = as_predictions(predictions)
-    if predictions.logits.ndim != 4:
-        raise ValueError(
-            f"predictions.logits: expected [L, B, Q, K], got shape {predictions.logits.shape}"
-        )
-    if predictions.masks.ndim != 5:
-        raise ValueError(
-            f"predictions.masks: expected [L, B, Q, H, W], got shape {predictions.masks.shape}"
-        )
-    return panoptic_inference_from_logits(predictions.logits[-1], predictions.masks[-1], config)
+    if isinstance(predictions, Mapping) and set(predictions) == {"logits", "masks"}:
+        logits, masks = predictions["logits"], predictions["masks"]
+    else:
+        predictions = as_predictions(predictions)
+        logits, masks = predictions.logits, predictions.masks
+    if logits.ndim != 4:
+        raise ValueError(f"predictions.logits: expected [L, B, Q, K], got shape {logits.shape}")
+    if masks.ndim != 5:
+        raise ValueError(f"predictions.masks: expected [L, B, Q, H, W], got shape {masks.shape}")
+    return panoptic_inference_from_logits(logits[-1], masks[-1], config)
 
 
 # Test-time views ----------------------------------------------------------------------------
