@@ -182,6 +182,50 @@ def test_predictions_read_by_name_and_given_as_a_dict(batch):
         set_loss({k: preds[k] for k in preds.keys() if k != "masks"}, targets, WEIGHTS)
 
 
+def test_targets_as_a_dict_and_default_weights(batch):
+    """Targets given as a dict (instance_ids, unread by the loss, may be left out) and
+    weights=None (the config's) give the Targets / explicit-weights result."""
+    preds, targets = batch
+    total, _ = set_loss(preds, targets, WEIGHTS)
+    as_dict = {k: targets[k] for k in targets.keys() if k != "instance_ids"}
+    np.testing.assert_allclose(set_loss(preds, as_dict, None)[0], total, rtol=1e-6)
+    np.testing.assert_allclose(cost_matrix(preds, as_dict), cost_matrix(preds, targets))
+    with pytest.raises(TypeError, match=r"targets: missing \['valid'\]"):
+        set_loss(preds, {k: v for k, v in as_dict.items() if k != "valid"}, WEIGHTS)
+
+
+def test_no_target_slots_at_all():
+    """M = 0 (a batch padded to no slots): every query is background, so with zero logits
+    each layer's cross-entropy is ln K; gradients are finite. (A reshape once divided by 0.)"""
+    preds, targets = _random_batch(6)
+    preds = dataclasses.replace(preds, logits=np.zeros_like(preds.logits))
+    empty = jax.tree.map(lambda x: x[:, :0], targets)
+    empty = dataclasses.replace(empty, instance_ids=targets.instance_ids)
+    total, parts, grads = _loss(preds, empty)
+    np.testing.assert_allclose(total, WEIGHTS["cls"] * L * math.log(K), rtol=1e-6)
+    assert parts["num_targets"] == 1.0
+    assert all(np.isfinite(np.asarray(g)).all() for g in jax.tree.leaves(grads))
+
+
+def test_infinite_mask_logits_give_finite_costs_and_gradients(batch):
+    """A mask logit of +-inf (an overflowed bfloat16, say) costs what the clipped logit
+    costs: +inf used to give inf - inf in the focal cost (NaN, so the query was never
+    matched) and a NaN gradient."""
+    preds, targets = batch
+    masks = preds.masks.copy()
+    masks[:, :, 0, 0, :3] = np.inf
+    masks[:, :, 1, 1, :3] = -np.inf
+    clipped = np.clip(masks, -1e4, 1e4)
+    inf_preds = dataclasses.replace(preds, masks=masks)
+    clip_preds = dataclasses.replace(preds, masks=clipped)
+    cost = np.asarray(_cost(inf_preds, targets, config=CFG))
+    assert np.isfinite(cost).all()
+    np.testing.assert_allclose(cost, _cost(clip_preds, targets, config=CFG), rtol=1e-6)
+    total, _, grads = _loss(inf_preds, targets)
+    np.testing.assert_allclose(total, _loss(clip_preds, targets)[0], rtol=1e-6)
+    assert all(np.isfinite(np.asarray(g)).all() for g in jax.tree.leaves(grads))
+
+
 def test_invariant_to_permuting_queries_and_targets(batch):
     preds, targets = batch
     rng = np.random.default_rng(3)
@@ -245,6 +289,64 @@ def test_sharded_shares_sum_to_whole_batch(batch):
     for t in TERMS:
         np.testing.assert_allclose(parts[t].sum(), whole_parts[t], rtol=1e-5, atol=1e-7)
     np.testing.assert_array_equal(parts["num_targets"], whole_parts["num_targets"])
+
+
+SHARD_MAP = """
+import os, sys
+flags = os.environ.get("XLA_FLAGS", "")
+os.environ["XLA_FLAGS"] = flags + " --xla_force_host_platform_device_count=2"
+sys.path.insert(0, sys.argv[1])
+import jax, numpy as np
+from jax.sharding import Mesh, PartitionSpec as P
+from test_losses import CFG, WEIGHTS, _random_batch
+from indoorbev_jax.losses import set_loss
+from indoorbev_jax.matching import match
+
+preds, targets = _random_batch(0)
+mesh = Mesh(np.array(jax.devices()), ("data",))
+pspec = jax.tree.map(lambda x: P(None, "data"), preds)
+tspec = jax.tree.map(lambda x: P("data"), targets)
+
+def loss(p, t, **kw):
+    return set_loss(p, t, WEIGHTS, CFG, **kw)
+
+def local(p, t):
+    (share, _), grads = jax.value_and_grad(loss, has_aux=True)(p, t, axis_name="data")
+    return jax.lax.psum(share, "data"), grads
+
+# shard_map's default check_vma: the solver's loops must not turn shard-dependent.
+sharded = jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(pspec, tspec), out_specs=(P(), pspec)))
+total, grads = sharded(preds, targets)
+(whole, _), whole_grads = jax.value_and_grad(loss, has_aux=True)(preds, targets)
+np.testing.assert_allclose(total, whole, rtol=1e-5)
+for a, b in zip(jax.tree.leaves(grads), jax.tree.leaves(whole_grads), strict=True):
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-7)
+cost = np.random.default_rng(1).normal(size=targets.valid.shape[:1] + (6, 4)).astype(np.float32)
+per_shard = jax.shard_map(
+    lambda c, v: match(c, v)[0], mesh=mesh, in_specs=(P("data"), P("data")), out_specs=P("data")
+)
+whole_idx = match(cost, targets.valid)[0]
+np.testing.assert_array_equal(jax.jit(per_shard)(cost, targets.valid), whole_idx)
+print("SHARD_MAP_OK", float(total), float(whole))
+"""
+
+
+def test_shard_map_loss_and_gradients_equal_the_whole_batch(tmp_path):
+    """Inside jax.shard_map (2 host devices, default check_vma) set_loss with axis_name:
+    the psum of the shards' losses and each shard's gradients equal the unsharded ones, and
+    match gives the unsharded indices (optax's loops once refused shard-dependent carries)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.setdefault("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "cache"))
+    out = subprocess.run(
+        [sys.executable, "-c", SHARD_MAP, str(Path(__file__).parent)],
+        capture_output=True, text=True, env=env, timeout=600,
+    )  # fmt: skip
+    assert "SHARD_MAP_OK" in out.stdout, out.stderr[-3000:]
 
 
 def _perfect(targets, big=20.0):

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 from indoorbev_jax import matching
 from indoorbev_jax.config import LossConfig
 from indoorbev_jax.geometry import wrap_angle
-from indoorbev_jax.types import Predictions, Targets, as_predictions
+from indoorbev_jax.types import Predictions, Targets, as_predictions, as_targets
 
 TERMS: tuple[str, ...] = ("cls", "dice", "focal", "dims", "pos", "yaw")
 # Optional key of ``weights``; when absent ``LossConfig.background_weight`` is used.
@@ -98,9 +98,15 @@ def _check_inputs(predictions: Predictions, targets: Targets) -> None:
         raise ValueError(f"targets hold M={m} slots but predictions only Q={q} queries")
 
 
+# Mask logits are clipped to this: at +-inf the focal terms give inf - inf and inf * 0 (NaN
+# costs and gradients), and +-1e4 already saturates the sigmoid in float32.
+MASK_LOGIT_BOUND = 1e4
+
+
 def _flat_masks(predictions: Predictions) -> jax.Array:
-    lyr, b, q = predictions.masks.shape[:3]
-    return predictions.masks.reshape(lyr, b, q, -1)  # [L, B, Q, H*W]
+    lyr, b, q, h, w = predictions.masks.shape
+    flat = predictions.masks.reshape(lyr, b, q, h * w)  # [L, B, Q, H*W]
+    return jnp.clip(flat, -MASK_LOGIT_BOUND, MASK_LOGIT_BOUND)
 
 
 def _cost_mask_points(
@@ -114,7 +120,7 @@ def _cost_mask_points(
     """
     logits = _flat_masks(predictions)  # [L, B, Q, H*W]
     b, m = targets.classes.shape
-    tgt = targets.masks.reshape(b, m, -1)  # [B, M, H*W]
+    tgt = targets.masks.reshape(b, m, logits.shape[-1])  # [B, M, H*W]; M may be 0
     k = config.num_mask_points
     if k == 0:
         return logits.astype(jnp.float32), tgt.astype(jnp.float32)
@@ -184,14 +190,16 @@ def cost_matrix(
     them out. Not differentiated by the loss.
 
     Args:
-      predictions: ``Predictions`` with L layers, B frames, Q queries.
-      targets: ``Targets`` with M slots, masks [B, M, H, W].
+      predictions: ``Predictions`` (or a dict of its fields) with L layers, B frames, Q
+        queries.
+      targets: ``Targets`` (or a dict of its fields) with M slots, masks [B, M, H, W].
       config: cost weights, focal alpha/gamma and ``num_mask_points``.
       key: ``jax.random`` key, required when ``config.num_mask_points > 0``.
 
     Returns:
       float32 [L, B, Q, M].
     """
+    predictions, targets = as_predictions(predictions), as_targets(targets)
     _check_inputs(predictions, targets)
     _check_key(config, key)
     mask_logits, mask_targets = _cost_mask_points(predictions, targets, config, key)
@@ -254,7 +262,7 @@ def _check_weights(weights: dict) -> None:
 def set_loss(
     predictions: Predictions,
     targets: Targets,
-    weights: dict | LossConfig,
+    weights: dict | LossConfig | None,
     config: LossConfig = DEFAULT_CONFIG,
     *,
     key: jax.Array | None = None,
@@ -270,13 +278,14 @@ def set_loss(
       predictions: ``Predictions`` (or a dict of its fields): logits [L, B, Q, K],
         dims/pos [L, B, Q, 3], yaw [L, B, Q, 1], masks [L, B, Q, H, W] (logits); any float
         dtype, losses are float32.
-      targets: ``Targets``: classes [B, M], dims/pos [B, M, 3], yaw [B, M], valid [B, M],
-        masks bool [B, M, H, W]. Frames without targets are fine.
+      targets: ``Targets`` (or a dict of its fields, ``instance_ids`` optional): classes
+        [B, M], dims/pos [B, M, 3], yaw [B, M], valid [B, M], masks bool [B, M, H, W].
+        Frames without targets are fine, and so is M = 0.
       weights: ``{"cls", "dice", "focal", "dims", "pos", "yaw"}`` loss weights, as
         ``LossConfig.weights()`` gives, optionally ``"background"`` (else
         ``config.background_weight``). Python floats or (traced) scalar arrays, so a sweep
         can ``jax.vmap`` over them. A ``LossConfig`` stands for its ``weights()`` and, when
-        ``config`` is not given, for ``config`` too.
+        ``config`` is not given, for ``config`` too; None: ``config.weights()``.
       config: matching-cost weights, background weight, focal alpha/gamma, point sampling,
         ``aux_loss``. Static.
       key: ``jax.random`` key, required when ``config.num_mask_points > 0``.
@@ -295,10 +304,13 @@ def set_loss(
 
         total, parts = set_loss(predictions, targets, LossConfig().weights())
     """
-    if isinstance(weights, LossConfig):
+    if weights is None:
+        weights = config.weights()
+    elif isinstance(weights, LossConfig):
         config = weights if config is DEFAULT_CONFIG else config
         weights = weights.weights()
     predictions = as_predictions(predictions)
+    targets = as_targets(targets)
     _check_inputs(predictions, targets)
     _check_weights(weights)
     _check_key(config, key)
@@ -352,7 +364,7 @@ def set_loss(
     loss_yaw = per_target_sum(jnp.abs(wrap_angle(yaw_diff)))
 
     logits_flat = _flat_masks(predictions)  # [L, B, Q, H*W]
-    tgt_flat = targets.masks.reshape(b, m, -1)  # [B, M, H*W]
+    tgt_flat = targets.masks.reshape(b, m, logits_flat.shape[-1])  # [B, M, H*W]; M may be 0
     if config.num_mask_points > 0:
         x, t = _loss_mask_points(
             logits_flat, tgt_flat, query_idx, config.num_mask_points, key_loss

@@ -95,7 +95,9 @@ def match(cost: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
     Args:
       cost: [B, Q, M] cost of giving target j to query q. NaN/Inf entries are allowed: they
         are treated as very expensive (see ``clean_cost``), never as an error. Entries of
-        padded targets are ignored.
+        padded targets are ignored. A frame that cannot avoid such capped pairs is solved
+        up to float32 rounding of the solver's potentials near ``COST_CAP``: an audit saw
+        its finite part off scipy's by 1.3e-3 to 5.9e-3 in 4 of 2,240 such frames.
       valid: bool [B, M], which targets are real.
 
     Returns:
@@ -104,6 +106,8 @@ def match(cost: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
       targets hold leftover queries (distinct while M <= Q) and carry no meaning. M may
       exceed Q: with at most Q valid targets each still gets its query; with more, as in
       scipy, Q of them are matched (least total cost) and the rest get -1.
+
+    Works inside ``jax.shard_map`` (see ``_match_gathered``), ``pmap`` and named ``vmap``.
 
     Raises:
       ValueError: when shapes disagree.
@@ -121,6 +125,36 @@ def match(cost: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
     if m == 0:
         empty = jnp.zeros((b, 0), jnp.int32)
         return empty, empty
-    query_idx = jax.vmap(_match_one)(cost, valid.astype(bool))  # [B, M]
+    axes = _varying_axes(cost)
+    if axes:  # inside shard_map: see _match_gathered
+        query_idx = _match_gathered(cost, valid.astype(bool), axes)
+    else:
+        query_idx = jax.vmap(_match_one)(cost, valid.astype(bool))  # [B, M]
     target_idx = jnp.broadcast_to(jnp.arange(m, dtype=jnp.int32), (b, m))
     return query_idx, target_idx
+
+
+def _varying_axes(x: jax.Array) -> tuple[str, ...]:
+    """The ``shard_map`` mesh axes along which ``x`` differs (empty outside one)."""
+    manual = getattr(jax.typeof(x), "manual_axis_type", None)
+    return tuple(sorted(getattr(manual, "varying", ()) or ()))
+
+
+def _match_gathered(cost: jax.Array, valid: jax.Array, axes: tuple[str, ...]) -> jax.Array:
+    """``match`` on this shard's frames inside ``shard_map`` (its default ``check_vma``).
+
+    optax's solver starts its loops from fresh zeros, which are the same on every shard, and
+    ``shard_map`` refuses a loop whose carry turns shard-dependent. So every shard solves the
+    whole batch (a psum of the shards' costs, each at its place: the same on all shards) and
+    keeps its own rows; costs are small ([B, Q, M]) next to the step's masks.
+    """
+    b = cost.shape[0]
+    index, size = jax.lax.axis_index(axes), jax.lax.axis_size(axes)
+
+    def gather(x):
+        placed = jnp.zeros((size * b,) + x.shape[1:], x.dtype)
+        placed = jax.lax.dynamic_update_slice_in_dim(placed, x, index * b, 0)
+        return jax.lax.psum(placed, axes)
+
+    every = jax.vmap(_match_one)(gather(cost), gather(valid.astype(jnp.int32)).astype(bool))
+    return jax.lax.dynamic_slice_in_dim(every, index * b, b, 0)

@@ -103,3 +103,18 @@ def as_predictions(x: Predictions | Mapping) -> Predictions:
             raise TypeError(f"predictions: missing {missing}, unknown {unknown}; fields {fields}")
         return Predictions(**x)
     raise TypeError(f"predictions: expected Predictions or a mapping, got {type(x).__name__}")
+
+
+def as_targets(x: Targets | Mapping) -> Targets:
+    """``x``, or a mapping with the fields of ``Targets`` as one; ``instance_ids`` may be
+    left out (the loss does not read it). Missing or unknown keys are a ``TypeError``."""
+    if isinstance(x, Targets):
+        return x
+    if isinstance(x, Mapping):
+        fields = tuple(Targets.__dataclass_fields__)
+        missing = [k for k in fields if k not in x and k != "instance_ids"]
+        unknown = [k for k in x if k not in fields]
+        if missing or unknown:
+            raise TypeError(f"targets: missing {missing}, unknown {unknown}; fields {fields}")
+        return Targets(**{"instance_ids": None, **x})
+    raise TypeError(f"targets: expected Targets or a mapping, got {type(x).__name__}")
