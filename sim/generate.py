@@ -460,8 +460,8 @@ def reference_frame(
     valid &= (measured >= sim.min_range) & (measured <= sim.max_range)
     xyz = directions * measured[:, None]
     g = grid
-    valid &= (xyz[:, 0] >= g.x_range[0]) & (xyz[:, 0] < g.x_range[1])
-    valid &= (xyz[:, 1] >= g.y_range[0]) & (xyz[:, 1] < g.y_range[1])
+    valid &= (xyz[:, 0] >= g.x_range[0]) & (xyz[:, 0] <= g.x_range[1])
+    valid &= (xyz[:, 1] >= g.y_range[0]) & (xyz[:, 1] <= g.y_range[1])
     valid &= (xyz[:, 2] >= g.z_range[0]) & (xyz[:, 2] <= g.z_range[1])
     point_slot = np.where(hit, tpl.geom_slot[np.maximum(gid, 0)], -1)
     s = tpl.num_slots

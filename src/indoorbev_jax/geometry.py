@@ -1,7 +1,8 @@
 """Grid and angle helpers shared by every stage (DESIGN section 2).
 
-The workspace rule lives here once: x and y half-open ``[min, max)``, z closed
-``[min, max]``; cell (row, col) of a point is ``floor((y - y_min) / v), floor((x - x_min) / v)``.
+The workspace rule lives here once: closed in x, y and z (DESIGN 2: x, y in [-5, 5], z in
+[-3, 3]); cell (row, col) of a point is ``floor((y - y_min) / v), floor((x - x_min) / v)``,
+except that x = x_max (y = y_max) falls in the last column (row).
 ``wrap_angle`` and ``in_workspace`` use plain operators, so numpy and JAX arrays both work.
 """
 
@@ -26,9 +27,9 @@ def in_workspace(xyz, grid: GridConfig):
     x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
     return (
         (x >= grid.x_range[0])
-        & (x < grid.x_range[1])
+        & (x <= grid.x_range[1])
         & (y >= grid.y_range[0])
-        & (y < grid.y_range[1])
+        & (y <= grid.y_range[1])
         & (z >= grid.z_range[0])
         & (z <= grid.z_range[1])
     )
@@ -52,12 +53,17 @@ def cell_index(x: jax.Array, y: jax.Array, grid: GridConfig):
 
     Returns:
       (row, col, inside): int32 row and column clipped into the grid, and bool ``inside``,
-      False where the unclipped cell lies outside the grid.
+      False where (x, y) lies outside the grid's closed x and y ranges (NaN included).
     """
     h, w = grid.shape
     col = jnp.floor((x - grid.x_range[0]) / grid.cell_size).astype(jnp.int32)
     row = jnp.floor((y - grid.y_range[0]) / grid.cell_size).astype(jnp.int32)
-    inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+    inside = (
+        (x >= grid.x_range[0])
+        & (x <= grid.x_range[1])
+        & (y >= grid.y_range[0])
+        & (y <= grid.y_range[1])
+    )
     return jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1), inside
 
 

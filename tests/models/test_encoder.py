@@ -23,7 +23,7 @@ def _points(key, b: int, n: int) -> tuple[np.ndarray, np.ndarray]:
     xy = rng.choice(np.linspace(-5.5, 5.5, 23), size=(b, n, 2)) + rng.uniform(-0.1, 0.1, (b, n, 2))
     z = rng.uniform(-3.5, 3.5, (b, n, 1))
     pts = np.concatenate([xy, z, rng.uniform(0, 1, (b, n, 1))], -1).astype(np.float32)
-    pts[:, 0] = (5.0, 0.0, 0.0, 0.5)  # x = x_max: outside (half-open)
+    pts[:, 0] = (5.0, 5.0, 0.0, 0.5)  # x = x_max, y = y_max: inside, the last cell (closed)
     pts[:, 1] = (-5.0, -5.0, 3.0, 0.5)  # corner cell, z = z_max: inside (closed)
     pts[:, 2] = (np.nan, 1.0, 0.0, 0.5)
     pts[:, 3] = (1.0, np.inf, 0.0, 0.5)
@@ -37,9 +37,9 @@ def _numpy_cells(pts: np.ndarray, valid: np.ndarray):
     finite = np.isfinite(pts).all(-1)
     p = np.where(finite[..., None], pts, 0.0).astype(np.float64)
     x, y, z = p[..., 0], p[..., 1], p[..., 2]
-    ok = valid & finite & (x >= -5) & (x < 5) & (y >= -5) & (y < 5) & (z >= -3) & (z <= 3)
-    col = np.floor((x + 5) / 0.25).astype(int)
-    row = np.floor((y + 5) / 0.25).astype(int)
+    ok = valid & finite & (x >= -5) & (x <= 5) & (y >= -5) & (y <= 5) & (z >= -3) & (z <= 3)
+    col = np.minimum(np.floor((x + 5) / 0.25).astype(int), 39)  # x = 5 is in column 39
+    row = np.minimum(np.floor((y + 5) / 0.25).astype(int), 39)
     return ok, row * 40 + col
 
 
@@ -51,7 +51,7 @@ def test_scatter_equals_numpy_per_cell_max_then_layernorm():
     bev_raw = np.asarray(inter["intermediates"]["bev_raw"][0])  # [B, H, W, C]
     p = jax.tree.map(np.asarray, params["params"])
     ok, cell = _numpy_cells(pts, valid)
-    assert ok[:, 1].all() and not ok[:, [0, 2, 3]].any()
+    assert ok[:, :2].all() and not ok[:, [2, 3]].any() and (cell[:, 0] == 40 * 40 - 1).all()
 
     ref = np.full((2, 40 * 40, 8), -np.inf, np.float32)
     for b in range(2):
@@ -102,3 +102,13 @@ def test_gradients_reach_the_branches_and_are_finite_despite_nan_points():
     for kernel in (g["branch_xz"]["fc1"]["kernel"], g["branch_yz"]["fc1"]["kernel"],
                    g["fuse"]["kernel"], g["empty"]):  # fmt: skip
         assert np.abs(np.asarray(kernel)).sum() > 0
+
+
+def test_a_cloud_of_no_points_is_a_cloud_of_invalid_points():
+    """N = 0 (a reshape once divided by it) gives the all-empty grid of a frame whose points
+    are all invalid."""
+    pts, valid = _points(1, 2, 16)
+    params = jax.jit(ENC.init, compiler_options=FAST)(jax.random.key(0), pts, valid)
+    none = ENC.apply(params, np.zeros((2, 0, 4), np.float32), np.zeros((2, 0), bool))
+    invalid, _ = _apply(params, pts, np.zeros_like(valid))
+    np.testing.assert_allclose(np.asarray(none), np.asarray(invalid), rtol=1e-6, atol=1e-6)

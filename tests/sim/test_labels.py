@@ -110,7 +110,7 @@ def test_padding_instance_ids_and_filters(frames):
         # Points: valid ones first, inside the workspace; invalid ones zero.
         p, pv = batch.points, batch.point_valid
         g = CFG.grid
-        assert (p[pv][:, 0] >= g.x_range[0]).all() and (p[pv][:, 0] < g.x_range[1]).all()
+        assert (p[pv][:, 0] >= g.x_range[0]).all() and (p[pv][:, 0] <= g.x_range[1]).all()
         assert (p[pv][:, 2] >= g.z_range[0]).all() and (p[pv][:, 2] <= g.z_range[1]).all()
         assert (p[~pv] == 0).all()
         assert ((info.point_object >= 0) <= pv).all()

@@ -29,7 +29,7 @@ def point_cells(
 
     Returns:
       ``(points, ok, row, col)``: points with unusable entries zeroed [B, N, 4]; ok bool
-      [B, N], True for valid, finite points inside the workspace (x, y half-open, z closed);
+      [B, N], True for valid, finite points inside the (closed) workspace;
       row, col int32 [B, N] (clipped into the grid, meaningful only where ok).
     """
     finite = jnp.all(jnp.isfinite(points), axis=-1)
@@ -109,7 +109,8 @@ class AFPCCN(nn.Module):
         feats = Dense(self.channels, name="fuse")(feats)  # [B, N, C]
         self.sow("intermediates", "point_features", feats)
 
-        bev = jax.ops.segment_max(feats.reshape(b * n, -1), cell, n_cells)  # [B*H*W, C]
+        flat = feats.reshape(b * n, feats.shape[-1])  # not -1: N may be 0
+        bev = jax.ops.segment_max(flat, cell, n_cells)  # [B*H*W, C]
         empty = self.param("empty", nn.initializers.normal(0.02), (self.channels,))
         bev = jnp.where((count > 0)[:, None], bev, empty[None, :])
         bev = bev.reshape(b, h, w, self.channels)  # [B, H, W, C]
