@@ -25,6 +25,7 @@ from indoorbev_jax.cli import (
     nonnegative_int,
     positive_float,
     positive_int,
+    seed_int,
 )
 from indoorbev_jax.config import Config
 
@@ -69,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     ex = sub.add_parser("export", help="write a KITTI-layout dataset (resumable)")
     ex.add_argument("--out", required=True, help="dataset root folder")
     ex.add_argument("--frames", type=positive_int, required=True)
-    ex.add_argument("--seed", type=int, default=0)
+    ex.add_argument("--seed", type=seed_int, default=0)
     ex.add_argument("--rosbag", default=None, help="also write a ROS2 bag at this path")
     ex.add_argument("--preset", default=None, help=preset_help)
     ex.add_argument("--no-progress", action="store_true")
@@ -85,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     ck = sub.add_parser("check", help="label consistency and class statistics over N frames")
     ck.add_argument("--frames", type=positive_int, default=200)
     ck.add_argument("--batch", type=positive_int, default=8)
-    ck.add_argument("--seed", type=int, default=0)
+    ck.add_argument("--seed", type=seed_int, default=0)
     ck.add_argument("--preset", default="paper")
     ck.add_argument("--split", default="train")
     ck.add_argument("--noise-free", action="store_true", help="no range noise or dropout")
@@ -102,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     pb.add_argument("--topic", default="/lidar/points", help="PointCloud2 topic")
     pb.add_argument("--objects-topic", default="/lidar/objects", help="ground-truth MarkerArray")
     pb.add_argument("--frame-id", default="lidar")
-    pb.add_argument("--seed", type=int, default=0)
+    pb.add_argument("--seed", type=seed_int, default=0)
     pb.add_argument("--split", default="test", choices=("train", "val", "test"))
     pb.add_argument("--record", default=None, help="record what is published into this bag")
     pb.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"))

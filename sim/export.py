@@ -35,7 +35,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from indoorbev_jax.cli import check_whole
+from indoorbev_jax.cli import check_seed, check_whole
 from indoorbev_jax.config import Config, flatten_dict
 from indoorbev_jax.data import kitti
 from indoorbev_jax.rosbag import check_bag_target, markers_to_labels, typestore
@@ -127,6 +127,37 @@ def _check_meta(root: Path, meta: dict) -> None:
         kitti.atomic_write(path, lambda p: p.write_text(json.dumps(meta, indent=1)))
 
 
+def _check_folder(name: str, path: str | os.PathLike) -> Path:
+    """``path`` as a Path, unless it is empty (an unset shell variable would mean the current
+    folder) or an existing file."""
+    if str(path) == "":
+        raise ValueError(f"{name}: an empty path; expected a folder")
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ExportError(f"{path}: is a file; {name} must be a folder")
+    return path
+
+
+def _check_bag_place(bag: Path, root: Path) -> None:
+    """The bag is written last: refuse up front a place it could not take, so that no
+    export runs for hours to fail there."""
+    b, r = bag.resolve(), root.resolve()
+    if b == r or r in b.parents or b in r.parents:
+        raise ExportError(f"{bag}: the bag folder overlaps the dataset folder {root}; "
+                          "choose a bag folder outside it")  # fmt: skip
+    existing = next(p for p in b.parents if p.exists())
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ExportError(f"{bag}: cannot be created ({existing} is not writable)")
+
+
+def _remove_stale_temporaries(root: Path) -> None:
+    """Deletes what a killed ``kitti.atomic_write`` left (``.<name>.<random>.tmp``): the
+    folder is this export's (export.json checked), and its files are whole or absent."""
+    for folder in (root, *(root / d for d in _DATA_DIRS)):
+        for tmp in folder.glob(".*.tmp"):
+            tmp.unlink(missing_ok=True)
+
+
 def saved_preset(root: str | os.PathLike) -> str | None:
     """The preset (paper, small, tiny) named by the config ``root/export.json`` records
     (``Config.name``), or None when there is no export.json or it names none of them.
@@ -190,22 +221,26 @@ def export(
         breath; the resume test uses it to kill an export midway).
 
     Raises:
-      ValueError: frames not a whole number > 0, or throttle not a number >= 0 (named);
-        ``rosbag`` names an existing path that is not a bag of this export (``BagError``, a
-        ValueError), checked up front.
-      ExportError: ``out`` holds an export with other settings, or dataset files without
-        export.json.
+      ValueError: frames not a whole number > 0, seed not one in [0, 2**32), throttle not a
+        number >= 0, an empty ``out`` or ``rosbag`` (named); ``rosbag`` names an existing
+        path that is not a bag of this export (``BagError``, a ValueError). All checked
+        before any frame.
+      ExportError: ``out`` is a file, holds an export with other settings, or dataset files
+        without export.json; ``rosbag`` overlaps ``out`` or cannot be created.
     """
     from tqdm import tqdm
 
     check_whole("frames", frames, 1)
+    check_seed("seed", seed)
     is_number = isinstance(throttle, int | float) and not isinstance(throttle, bool)
     if not (is_number and math.isfinite(throttle) and throttle >= 0):
         raise ValueError(f"throttle: must be a number of seconds >= 0, got {throttle!r}")
+    root = _check_folder("out", out)
     if rosbag is not None:  # write_bag runs last: refuse a bad target before hours of frames
+        _check_bag_place(_check_folder("rosbag", rosbag), root)
         check_bag_target(rosbag, (POINTS_TOPIC, OBJECTS_TOPIC))
-    root = Path(out)
     _check_meta(root, {"seed": int(seed), "frames": int(frames), "config": config.to_dict()})
+    _remove_stale_temporaries(root)
     t_len = config.sim.frames_per_sequence
     scenes = [
         [frame_id(i) for i in range(j * t_len, min((j + 1) * t_len, frames))]

@@ -50,6 +50,18 @@ def _whole_number(minimum: int):
 
 positive_int = _whole_number(1)
 nonnegative_int = _whole_number(0)
+# jax.random.key folds a seed into 32 bits: larger or negative seeds would repeat others.
+SEED_LIMIT = 2**32
+
+
+def seed_int(text: str) -> int:
+    """argparse type: a random seed, a whole number in [0, 2**32)."""
+    try:
+        return check_seed("seed", int(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a whole number in [0, 2**32), got {text!r}"
+        ) from None
 
 
 # The same checks for library arguments (what the argparse types above leave to Python
@@ -59,6 +71,14 @@ def check_whole(name: str, value, minimum: int, note: str = "") -> int:
     the message, e.g. " (0: never)"."""
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name}: expected a whole number {_bound(minimum)}{note}, got {value!r}")
+    return value
+
+
+def check_seed(name: str, value) -> int:
+    """``value`` if it is a whole number in [0, 2**32) (``jax.random.key``'s distinct seeds)."""
+    whole = isinstance(value, int) and not isinstance(value, bool)
+    if not (whole and 0 <= value < SEED_LIMIT):
+        raise ValueError(f"{name}: expected a whole number in [0, 2**32), got {value!r}")
     return value
 
 

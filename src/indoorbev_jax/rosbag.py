@@ -125,12 +125,17 @@ def marker(ts, hdr, ns: str, ident: int, kind: int, **fields):
     return cls(**values)
 
 
+_MARKER_DELETEALL = 3  # visualization_msgs/Marker.DELETEALL
+
+
 def markers_msg(ts, labels: kitti.ObjectLabels, names, stamp_ns: int, frame: str = "lidar"):
-    """A MarkerArray with one CUBE per object: namespace = class name, text = class and
-    occlusion (ground truth) or class and score (predictions)."""
+    """A MarkerArray: a DELETEALL (so that a replay does not keep the boxes of earlier
+    frames), then one CUBE per object: namespace = class name, text = class and occlusion
+    (ground truth) or class and score (predictions)."""
     t = ts.types
     hdr = header(ts, stamp_ns, frame)
-    markers = []
+    kind = t["visualization_msgs/msg/Marker"]
+    markers = [marker(ts, hdr, "", 0, kind.CUBE, action=kind.DELETEALL)]
     for k in range(len(labels)):
         yaw = float(labels.yaw[k])
         name = names[int(labels.classes[k])]
@@ -163,8 +168,9 @@ def markers_msg(ts, labels: kitti.ObjectLabels, names, stamp_ns: int, frame: str
 
 
 def markers_to_labels(msg, data_config) -> kitti.ObjectLabels:
-    """Inverse of ``markers_msg`` (scores when the texts carry them)."""
-    m = msg.markers
+    """Inverse of ``markers_msg`` (scores when the texts carry them); DELETEALL markers
+    (and bags written before they were) are read alike."""
+    m = [x for x in msg.markers if x.action != _MARKER_DELETEALL]
     extras = [x.text.split()[-1] for x in m]
     has_scores = any("." in e for e in extras)
     return kitti.ObjectLabels(

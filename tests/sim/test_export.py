@@ -102,9 +102,28 @@ def test_rosbag_round_trip(exported):
         np.testing.assert_allclose(np.sin((labels.yaw - ref.yaw) / 2), 0, atol=1e-6)
 
 
+def test_bag_markers_start_with_deleteall(exported):
+    """Each frame's MarkerArray clears the previous frame's boxes in a replay (a DELETEALL
+    first); reading it back skips that marker (test above)."""
+    from rosbags.rosbag2 import Reader
+
+    from indoorbev_jax.rosbag import typestore
+
+    _, bag, _ = exported
+    ts = typestore()
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == export_mod.OBJECTS_TOPIC]
+        arrays = [ts.deserialize_cdr(raw, c.msgtype) for c, _, raw in reader.messages(conns)]
+    assert arrays and all(a.markers[0].action == 3 for a in arrays)  # Marker.DELETEALL
+    assert all(m.action == 0 for a in arrays for m in a.markers[1:])  # ADD
+
+
 def test_show_writes_pictures(exported, tmp_path):
     root, _, _ = exported
     written = show.show(root, tmp_path, CFG, ids=["000000", "000001"])
+    (tmp_path / "a_file").write_text("x")
+    with pytest.raises(ValueError, match="a_file: is a file; out must be a folder"):
+        show.show(root, tmp_path / "a_file", CFG)
     from PIL import Image
 
     for path in written:
@@ -139,6 +158,8 @@ def test_resume_after_kill_equals_uninterrupted_export(exported, cache, tmp_path
     torn = kitti.frame_paths(out, done[-1])
     torn["points"].write_bytes(torn["points"].read_bytes()[:37])
     torn["labels"].unlink()
+    # What a kill inside kitti.atomic_write leaves: the resume deletes it.
+    (out / "mask_2" / f".{done[0]}.png.k1ll3d.tmp").write_bytes(b"")
     rerun = subprocess.run(_cli(out, cache), env=env, capture_output=True, text=True)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
     for sub in ("velodyne", "label_2", "mask_2"):
@@ -229,6 +250,24 @@ def test_bad_options_fail_before_any_frame(cache, tmp_path):
         expected = f"frames: expected a whole number > 0, got {frames!r}"
         with pytest.raises(ValueError, match=expected):
             export_mod.export(out, frames, SEED, CFG, progress=False)
+    # jax.random.key folds seeds into 32 bits: 2**32 + 5 gave seed 5's frames.
+    for seed in (2**32 + 5, -1, 2**63, True):
+        with pytest.raises(ValueError, match=r"seed: expected a whole number in \[0, 2\*\*32\)"):
+            export_mod.export(out, 4, seed, CFG, progress=False)
+    with pytest.raises(SystemExit):
+        main(["export", "--out", str(out), "--frames", "4", "--seed", "-1", "--preset", "tiny"])
+    with pytest.raises(ValueError, match="out: an empty path"):
+        export_mod.export("", 4, SEED, CFG, progress=False)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    with pytest.raises(export_mod.ExportError, match="a_file: is a file; out must be a folder"):
+        export_mod.export(a_file, 4, SEED, CFG, progress=False)
+    # The bag is written last: a place it cannot take is refused before the frames.
+    for bag in (out, out / "bag", tmp_path):
+        with pytest.raises(export_mod.ExportError, match="overlaps the dataset folder"):
+            export_mod.export(out, 4, SEED, CFG, rosbag=bag, progress=False)
+    with pytest.raises(ValueError, match="rosbag: an empty path"):
+        export_mod.export(out, 4, SEED, CFG, rosbag="", progress=False)
     assert not out.exists()
 
 
