@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 
+from indoorbev_jax.cli import exit_with
 from indoorbev_jax.config import add_config_arguments, config_from_args
 from indoorbev_jax.train import train_and_evaluate
 
@@ -37,7 +39,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> int:
     # Our INFO lines only: an imported library already put a WARNING handler on the root
     # logger (basicConfig would do nothing), and orbax's INFO lines are noise here.
     ours = logging.getLogger("indoorbev_jax")
@@ -48,16 +50,21 @@ def main(argv=None) -> None:
     ours.setLevel(logging.INFO)
     ours.propagate = False
     args = parse_args(argv)
-    train_and_evaluate(
-        config_from_args(args),
-        args.workdir,
-        data=args.data,
-        skip_bad_frames=args.skip_bad_frames,
-        progress=not args.no_progress,
-        init_from=args.init_from,
-        init_strict=not args.init_partial,
-    )
+    try:
+        train_and_evaluate(
+            config_from_args(args),
+            args.workdir,
+            data=args.data,
+            skip_bad_frames=args.skip_bad_frames,
+            progress=not args.no_progress,
+            init_from=args.init_from,
+            init_strict=not args.init_partial,
+        )
+    except (ValueError, OSError) as e:  # refusals and bad data: their message names the cause
+        print(f"train.py: error: {e}", file=sys.stderr)
+        return 2
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    exit_with(main, "train.py")  # Ctrl-C: one line and status 130, checkpoints closed

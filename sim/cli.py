@@ -37,6 +37,10 @@ def _config(args) -> Config:
 
         preset = saved_preset(args.out if args.command == "export" else args.root) or "paper"
     cfg = Config.preset(preset)
+    if getattr(args, "set", None):
+        from indoorbev_jax.config import with_overrides
+
+        cfg = with_overrides(cfg, args.set)
     if getattr(args, "noise_free", False):
         cfg = dataclasses.replace(
             cfg, sim=dataclasses.replace(cfg.sim, range_noise=0.0, dropout=0.0)
@@ -82,6 +86,9 @@ def main(argv: list[str] | None = None) -> int:
     sh.add_argument("--out", required=True, help="folder for the PNGs")
     sh.add_argument("--ids", nargs="*", default=None, help="frame ids (default: all)")
     sh.add_argument("--preset", default=None, help=preset_help)
+    sh.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help='override a config field (repeatable), e.g. for your own class names '
+                    "--set 'data.class_map={\"Desk\": \"Table\"}'")  # fmt: skip
 
     ck = sub.add_parser("check", help="label consistency and class statistics over N frames")
     ck.add_argument("--frames", type=positive_int, default=200)
@@ -127,6 +134,13 @@ def main(argv: list[str] | None = None) -> int:
             splits = export(args.out, args.frames, args.seed, cfg, args.rosbag,
                             progress=not args.no_progress, throttle=args.throttle)  # fmt: skip
             print(" ".join(f"{k}={len(v)}" for k, v in splits.items()))
+            empty = [k for k, v in splits.items() if not v]
+            if empty:  # scene j goes to test when j % 10 == 9, to val when j % 10 == 8
+                per_scene = cfg.sim.frames_per_sequence
+                print(f"note: no {' or '.join(empty)} frames: scene j goes to val when "
+                      f"j % 10 == 8 and to test when j % 10 == 9 ({per_scene} frames a "
+                      f"scene), so --frames >= {10 * per_scene} gives every split",
+                      file=sys.stderr)  # fmt: skip
         elif args.command == "show":
             from indoorbev_sim.show import show
 

@@ -249,3 +249,21 @@ def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
         script.main([*map(str, paths[:2]), "--out", str(out), "--mask-threshold", "2"])
     assert exit_info.value.code == 2
     assert "inference.mask_threshold': must lie in [0, 1]" in capsys.readouterr().err
+
+
+def test_train_script_refusals_are_one_line(tmp_path, capsys, monkeypatch):
+    """A refused start (here: a workdir holding another run's config) prints one line and
+    returns status 2, not a traceback."""
+    import logging
+
+    ours = logging.getLogger("indoorbev_jax")  # main() configures it: undone afterwards
+    monkeypatch.setattr(ours, "handlers", list(ours.handlers))  # main() appends to a copy
+    monkeypatch.setattr(ours, "level", ours.level)
+    monkeypatch.setattr(ours, "propagate", ours.propagate)
+    train = _script("train")
+    (tmp_path / "config.json").write_text(Config.small().to_json())
+    status = train.main(["--preset", "tiny", "--workdir", str(tmp_path), "--data", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert status == 2
+    assert "train.py: error: " in err and "the workdir holds a run with another config" in err
+    assert "Traceback" not in err

@@ -20,7 +20,8 @@ import optax
 import pytest
 
 from indoorbev_jax import train as T
-from indoorbev_jax.config import Config
+from indoorbev_jax.config import Config, with_overrides
+from indoorbev_jax.data import kitti
 from indoorbev_jax.data.dataset import KittiDataset
 from indoorbev_jax.sweep import init_sweep, make_sweep_step, stack_hypers
 
@@ -259,8 +260,32 @@ def test_kill_and_rerun_resumes_bitwise(data, tmp_path):
 
 def test_config_mismatch_in_workdir_is_an_error(tmp_path):
     (tmp_path / "config.json").write_text(Config.small().to_json())
-    with pytest.raises(ValueError, match="config.json: the workdir holds a run"):
+    with pytest.raises(ValueError, match="config.json: the workdir holds a run") as refused:
         T.train_and_evaluate(CFG, tmp_path, data=str(tmp_path), progress=False)
+    # Nothing was trained there: the message says how to start afresh.
+    assert "no checkpoint yet, so nothing was trained: remove its config.json" in str(refused.value)
+
+
+def test_bad_training_labels_and_an_empty_val_split_stop_the_start(data, tmp_path, quick_start):
+    """A training label file with an unknown class is named before config.json is written
+    (it used to fail at its step, leaving a config.json that refused the corrected command);
+    a val split without frames is refused (every evaluation would be NaN)."""
+    import shutil
+
+    own = tmp_path / "own"
+    shutil.copytree(data, own)
+    first = kitti.read_split(own, "train")[-1]
+    label = own / "label_2" / f"{first}.txt"
+    label.write_text(label.read_text().replace(label.read_text().split()[0], "Desk", 1))
+    workdir = tmp_path / "run"
+    with pytest.raises(kitti.DatasetError, match=rf"{first}\.txt:1: unknown class 'Desk'"):
+        T.train_and_evaluate(CFG, workdir, data=str(own), progress=False)
+    assert not (workdir / "config.json").exists()
+    mapped = with_overrides(CFG, ['data.class_map={"Desk": "Table"}'])
+    kitti.write_split(own, "val", [])
+    with pytest.raises(kitti.DatasetError, match=r"val\.txt: lists no frames to validate on"):
+        T.train_and_evaluate(mapped, workdir, data=str(own), progress=False)
+    assert not (workdir / "config.json").exists()
 
 
 class _Stop(Exception):

@@ -404,6 +404,12 @@ def _eta(seconds: float) -> str:
     return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
+def _first_ids(ids: list[str], limit: int = 10) -> str:
+    """The first ``limit`` ids, and how many more there are."""
+    more = f", ... ({len(ids) - limit} more)" if len(ids) > limit else ""
+    return ", ".join(ids[:limit]) + more
+
+
 def predict(
     model_path: str | os.PathLike,
     input_path: str | os.PathLike,
@@ -572,10 +578,10 @@ def predict(
         say(f"{summary['resumed_frames']} frames were done by an earlier run and kept")
     if summary["bad_frames"]:
         bad = summary["bad_frames"]
-        say(f"{len(bad)} unreadable frames skipped: {', '.join(bad[:10])}")
+        say(f"{len(bad)} unreadable frames skipped: {_first_ids(bad)}")
     if summary["empty_frames"]:
         empty = summary["empty_frames"]
-        say(f"{len(empty)} frames had no valid point in the workspace: {', '.join(empty[:10])}")
+        say(f"{len(empty)} frames had no valid point in the workspace: {_first_ids(empty)}")
     if summary["thinned_frames"]:
         say(
             f"{summary['thinned_frames']} frames had more valid points than data.max_points="

@@ -403,6 +403,9 @@ class KittiSource:
         self.seed = seed
         self.skip_bad = skip_bad
         self.bad: set[int] = set()
+        if not skip_bad:  # before the run starts (and writes config.json), not at step k
+            for frame_id in self.dataset.ids:
+                kitti.read_labels(kitti.frame_paths(root, frame_id)["labels"], config.data)
 
     def _order(self, epoch: int) -> np.ndarray:
         return np.random.default_rng([self.seed, epoch]).permutation(len(self.dataset))
@@ -632,6 +635,8 @@ def make_sources(config: Config, data: str | None, seed: int, skip_bad: bool):
 
         train = KittiSource(data, "train", config, seed, skip_bad)
         val_ds = KittiDataset(data, "val", config)
+        if len(val_ds) == 0:  # every evaluation would be NaN, and best/ chosen on NaN
+            raise kitti.DatasetError(f"{Path(data) / 'val.txt'}: lists no frames to validate on")
         val = list(val_ds.batches(t.batch_size, drop_remainder=False))[: t.eval_batches]
     if config.data.mask_targets == "box":  # training targets only; validation stays true shape
         boxed = jax.jit(box_targets, static_argnums=1)
@@ -647,6 +652,13 @@ def _describe_source(data: str | None) -> str:
     return "the simulator" if data is None else data
 
 
+def _has_checkpoint(workdir: Path) -> bool:
+    """Whether ``workdir/checkpoints`` holds a finished step (orbax names them by step;
+    an interrupted save is a ``<step>.orbax-checkpoint-tmp`` folder)."""
+    folder = workdir / "checkpoints"
+    return folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())
+
+
 def check_resume(config_path: Path, run_path: Path, config: Config, data: str | None) -> None:
     """Raises ``ValueError`` unless the run in ``config_path``'s folder may go on with
     ``config`` and ``data`` (a resolved folder, or None for the simulator): only fields in
@@ -655,11 +667,16 @@ def check_resume(config_path: Path, run_path: Path, config: Config, data: str | 
     lines = {k: f"  {k}: {a!r} -> {b!r}" for k, (a, b) in diff.items()}
     refused = [line for k, line in lines.items() if k not in RESUME_MAY_CHANGE]
     if refused:
+        fresh = (
+            "it has no checkpoint yet, so nothing was trained: remove its config.json and "
+            "run.json to start it afresh with these settings, or train in another workdir"
+            if not _has_checkpoint(config_path.parent)
+            else "train in another workdir (--init-from this one to start from its parameters)"
+        )
         raise ValueError(
             f"{config_path}: the workdir holds a run with another config (saved -> given):\n"
             + "\n".join(refused)
-            + f"\nonly {', '.join(sorted(RESUME_MAY_CHANGE))} may change on resume; train in "
-            "another workdir (--init-from this one to start from its parameters)"
+            + f"\nonly {', '.join(sorted(RESUME_MAY_CHANGE))} may change on resume; {fresh}"
         )
     if lines:
         log.info("note: resuming with (saved -> given):\n%s", "\n".join(lines.values()))
@@ -781,8 +798,9 @@ def train_and_evaluate(
                 bar.set_postfix(loss=f"{values['loss']:.4f}", sps=f"{values['steps_per_s']:.2f}")
                 pending, window_start, window_steps = [], time.perf_counter(), 0
             bar.update(1)
-            if done % t.checkpoint_every == 0 or done == t.total_steps:
-                checkpoints.save(state)
+            # Evaluate before the checkpoint of the same step: a run killed in between
+            # resumes from the previous checkpoint and evaluates again, where the other
+            # order would skip this evaluation (and its best/ candidate) for good.
             if done % t.eval_every == 0 or done == t.total_steps:
                 results = evaluate(config, eval_params(state), val_batches, predict_fn)
                 scalars = {k: v for k, v in results.items() if isinstance(v, int | float)}
@@ -790,6 +808,8 @@ def train_and_evaluate(
                 metrics_log.write(done, "eval", scalars)
                 checkpoints.save_best(state, scalars)
                 bar.write(f"step {done}: " + ", ".join(f"{k} {v:.4f}" for k, v in scalars.items()))
+            if done % t.checkpoint_every == 0 or done == t.total_steps:
+                checkpoints.save(state)
     finally:
         bar.close()
         metrics_log.close()

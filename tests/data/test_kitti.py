@@ -76,7 +76,8 @@ def test_float64_points_are_refused_and_float32_clouds_are_not(tmp_path):
     z, however their sizes fall, are read as written."""
     rng = np.random.default_rng(0)
     cloud = np.c_[rng.uniform(-4, 4, (2000, 3)), rng.uniform(0, 1, 2000)]
-    for name, points in (("random", cloud), ("round", np.round(cloud * 4) / 4)):
+    widened = cloud.astype(np.float32).astype(np.float64)  # float32 values via float64
+    for name, points in (("random", cloud), ("round", np.round(cloud * 4) / 4), ("wide", widened)):
         points.tofile(tmp_path / f"{name}.bin")  # float64
         with pytest.raises(kitti.DatasetError, match=rf"{name}\.bin: looks like float64"):
             kitti.read_points(tmp_path / f"{name}.bin")

@@ -328,3 +328,23 @@ def test_show_refuses_a_missing_folder(tmp_path, capsys):
     assert main(["show", str(missing), "--out", str(tmp_path / "pics")]) == 2
     assert f"{missing}: no such dataset folder" in capsys.readouterr().err
     assert not (tmp_path / "pics").exists()
+
+
+def test_show_takes_a_class_map_for_data_of_ones_own(exported, tmp_path, capsys):
+    """A folder whose labels name a class otherwise (a user's "Desk") shows with --set
+    data.class_map, as dataset check and eval take it; without it the class is named."""
+    root, _, _ = exported
+    own = tmp_path / "own"
+    shutil.copytree(root, own)
+    fid = next(
+        f
+        for f in kitti.list_frames(own)
+        if "Table" in kitti.frame_paths(own, f)["labels"].read_text()
+    )
+    label = kitti.frame_paths(own, fid)["labels"]
+    label.write_text(label.read_text().replace("Table", "Desk"))
+    argv = ["show", str(own), "--out", str(tmp_path / "pics"), "--ids", fid, "--preset", "tiny"]
+    assert main(argv) == 2
+    assert "unknown class 'Desk'" in capsys.readouterr().err
+    assert main([*argv, "--set", 'data.class_map={"Desk": "Table"}']) == 0
+    assert (tmp_path / "pics" / f"{fid}.png").exists()

@@ -153,10 +153,15 @@ def _looks_like_float64(words: np.ndarray) -> bool:
     xyz = np.abs(words.reshape(-1, 4)[:, :3])
     xyz = xyz[xyz != 0]
     # The low halves of doubles read as float32 are huge, tiny or not finite; or all zero
-    # when the doubles are round numbers (the high halves then look plausible).
+    # when the doubles are round numbers (the high halves then look plausible); or, for
+    # float32 values widened to float64 (open3d's points, say), zero but in their top 3
+    # bits, which a float32 coordinate almost never is.
     absurd = ~np.isfinite(xyz) | (xyz > 1e6) | (xyz < 1e-20)
     low_zero = np.mean(words[0::2] == 0) > 0.9 and np.mean(words[1::2] != 0) > 0.5
-    return bool(xyz.size and absurd.mean() > 0.2) or bool(low_zero)
+    low = words.view(np.uint32)[0::2]
+    low = low[low != 0]
+    widened = low.size > 0 and np.mean((low & 0x1FFFFFFF) == 0) > 0.9
+    return bool(xyz.size and absurd.mean() > 0.2) or bool(low_zero) or bool(widened)
 
 
 def write_points(path: str | os.PathLike, points: np.ndarray) -> None:
@@ -317,7 +322,8 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
         )
     if ids.shape != tuple(shape):
         raise DatasetError(
-            f"{path}: mask of shape {ids.shape} (H, W), expected {tuple(shape)} from the grid"
+            f"{path}: mask of shape {ids.shape} (H, W), expected {tuple(shape)} from the grid "
+            "of the config in use (another --preset?)"
         )
     return ids.astype(np.int32)
 
