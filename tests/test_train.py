@@ -329,6 +329,44 @@ class _FakeSim:
         return None
 
 
+def test_a_kill_during_evaluation_redoes_it(data, tmp_path, quick_start, monkeypatch):
+    """A step that evaluates and checkpoints evaluates first: killed inside the evaluation,
+    the run has no checkpoint of that step, so the rerun trains it again and evaluates it
+    (the other order resumed past it, and its eval line and best/ candidate were lost)."""
+    cfg = dataclasses.replace(
+        CFG,
+        train=dataclasses.replace(
+            CFG.train, total_steps=4, eval_every=2, checkpoint_every=2, log_every=2
+        ),
+    )
+
+    def fake_step(state, batch, key, hyper):  # the loop's bookkeeping, without compiling
+        return state.replace(step=state.step + 1), {"loss": jnp.float32(1.0), "finite": True}
+
+    evaluated = []
+
+    def fake_evaluate(config, params, batches, predict_fn):
+        evaluated.append(len(evaluated))
+        if len(evaluated) == 2:  # the evaluation of step 4
+            raise KeyboardInterrupt
+        return {"pq": 0.5, "ap": {0.5: 0.25}}
+
+    monkeypatch.setattr(T, "jit_train_step", lambda *args, **kwargs: fake_step)
+    monkeypatch.setattr(T, "evaluate", fake_evaluate)
+    workdir = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        T.train_and_evaluate(cfg, workdir, data=str(data), progress=False)
+    assert sorted(int(p.name) for p in (workdir / "checkpoints").iterdir()) == [2]
+    T.train_and_evaluate(cfg, workdir, data=str(data), progress=False)
+    lines = [json.loads(x) for x in (workdir / "metrics.jsonl").read_text().splitlines()]
+    assert [(r["step"], r["kind"]) for r in lines] == [
+        (2, "train"),
+        (2, "eval"),
+        (4, "train"),
+        (4, "eval"),
+    ]
+
+
 def test_metrics_log_drops_a_torn_last_line_only(tmp_path, caplog):
     path = tmp_path / "metrics.jsonl"
     good = ['{"step": 5, "kind": "train", "loss": 2.0}', '{"step": 10, "kind": "train"}']
