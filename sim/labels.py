@@ -373,14 +373,16 @@ def check(config: Config, frames: int, batch_size: int, seed: int, split: str = 
     their own dilated footprint / in another's, and objects per class.
 
     Raises:
-      ValueError: ``frames`` or ``batch_size`` is not a whole number > 0 (named).
+      ValueError: ``frames`` or ``batch_size`` is not a whole number > 0, or ``seed`` not
+        one in [0, 2**32) (named).
     """
     import time
 
-    from indoorbev_jax.cli import check_whole
+    from indoorbev_jax.cli import check_seed, check_whole
 
     check_whole("frames", frames, 1)
     check_whole("batch_size", batch_size, 1)
+    check_seed("seed", seed)
 
     import jax
     from indoorbev_sim import generate

@@ -89,9 +89,11 @@ def publish(
     Returns:
       {"frames": published, "rate_hz": achieved rate, "late": frames sent over a period late}.
     """
+    from indoorbev_jax.cli import check_seed
     from indoorbev_jax.ros2 import runtime
 
     check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_timeout)
+    check_seed("seed", seed)
     runtime.require_rclpy()
     if record:
         from indoorbev_jax.ros2.record import ensure_new

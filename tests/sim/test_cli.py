@@ -30,3 +30,18 @@ def test_check_library_needs_positive_frames_and_batch(frames, batch):
 
     with pytest.raises(ValueError, match="(frames|batch_size): expected a whole number > 0"):
         check(Config.tiny(), frames, batch, seed=0)
+
+
+@pytest.mark.parametrize("seed", [-1, 2**32, 1.5])
+def test_check_library_and_cli_need_a_32_bit_seed(seed, capsys):
+    """jax.random.key folds a seed into 32 bits: others would repeat seeds in [0, 2**32)."""
+    from indoorbev_sim.labels import check
+
+    from indoorbev_jax.config import Config
+
+    with pytest.raises(ValueError, match=r"seed: expected a whole number in \[0, 2\*\*32\)"):
+        check(Config.tiny(), 8, 4, seed=seed)
+    with pytest.raises(SystemExit) as e:
+        main(["check", "--preset", "tiny", "--seed", str(seed)])
+    assert e.value.code == 2
+    assert "argument --seed: expected a whole number in [0, 2**32)" in capsys.readouterr().err
