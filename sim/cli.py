@@ -1,7 +1,7 @@
 """``indoorbev-sim``: export simulated datasets, draw BEV pictures, check labels.
 
     indoorbev-sim export --out DIR --frames N --seed S [--rosbag PATH] [--preset paper]
-    indoorbev-sim show DIR --out PICS [--ids 000000 000001] [--preset paper]
+    indoorbev-sim show DIR --out PICS [--ids 000000 000001] [--preset paper] [--set F=V]
     indoorbev-sim check --frames 200 [--preset paper] [--noise-free]
     indoorbev-sim ros2 publish [--preset small] [--rate 10] [--frames N] [--record BAG]
 

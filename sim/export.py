@@ -6,18 +6,20 @@
 else to train. Each frame is a pure function of (seed, j, t), so:
 
 * every file is written atomically (temporary name, then rename), the label file last; a
-  frame is complete when its label file exists;
+  frame is complete when its points, mask and label files exist (``_complete``);
 * a rerun after a kill skips the complete scenes and regenerates the rest, giving exactly
   the files of an uninterrupted run (``export.json`` pins seed, frame count and config;
   a rerun with different ones is refused, naming that file and each differing field);
 * a folder without ``export.json`` that holds frames, masks or split lists (another
   dataset, ``indoorbev predict`` output) is refused, never written into;
-* the options are checked (bag target, throttle) before any frame is generated;
+* the options are checked (frames, seed, throttle, out, the bag's target and place) before
+  any frame is generated;
 * the split files and the bag are (re)written at the end, from the frames on disk.
 
 ROS2 bag (``rosbags``, pure Python, no ROS install): ``/lidar/points``
 (sensor_msgs/PointCloud2 with float32 x, y, z, intensity, frame "lidar") and
-``/lidar/objects`` (visualization_msgs/MarkerArray, one CUBE per object: pose = box centre
+``/lidar/objects`` (visualization_msgs/MarkerArray, a DELETEALL, then one CUBE per object:
+pose = box centre
 and yaw, scale = (length, width, height), ``ns`` = class name, ``id`` = label line,
 ``text`` = "class occlusion"), one message pair per frame at t = (frame + 1) * frame_dt.
 """

@@ -621,7 +621,8 @@ def cast_rays(
       data: ``mjx.Data`` of one scene (``geom_xpos`` [G, 3]) or B scenes ([B, G, 3]).
       origins: float [3] or [B, 3], world frame.
       directions: float [R, 3] or [B, R, 3], unit vectors, world frame (a direction of
-        length < mjMINVAL, or not finite, is a miss; ``mj_ray`` raises on it). With one
+        length < mjMINVAL, or not finite, is a miss; ``mj_ray`` stops the process on the
+        first and gives no reliable answer for the second). With one
         scene, B ray sets [B, R, 3] are cast in that scene, giving [B, R].
       max_range: float scalar or [B]; hits farther than this count as misses.
       geomgroup: optional 6 flags (``mj_ray``'s geomgroup); None includes every group.

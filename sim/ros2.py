@@ -2,7 +2,7 @@
 
 Publishes simulated scenes frame by frame at sensor rate: sensor_msgs/PointCloud2 (float32
 x, y, z, intensity) on ``--topic`` and the ground truth as visualization_msgs/MarkerArray
-(one CUBE per object, as in the exported bags: ``ns`` = class, ``text`` = "class
+(a DELETEALL, then one CUBE per object, as in the exported bags: ``ns`` = class, ``text`` = "class
 occlusion"; each marker lives two frame periods so RViz drops objects that left) on
 ``--objects-topic``, stamped with the publish time. Scenes are the consecutive-frame
 sequences of ``generate.generate_sequences`` (people and robots move, the lidar rides its

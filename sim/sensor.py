@@ -185,8 +185,9 @@ def scan(
 class MjLidar:
     """A lidar on a plain MuJoCo model, scanning ``mujoco.MjData`` states step by step.
 
-    For simulations stepped on the host with ``mujoco.mj_step``: the model goes to the
-    device once, and each call copies only what moves (``geom_xpos``, ``geom_xmat`` and the
+    For simulations stepped on the host with ``mujoco.mj_step``: the geoms go to the
+    device once (no ``mjx.put_model``, so models MJX refuses work; ``skip_unsupported=True``
+    for meshes), and each call copies only what moves (``geom_xpos``, ``geom_xmat`` and the
     sensor site's pose) into one jitted scan. The result is exactly ``scan`` on
     ``mjx.put_data(model, data)``, without converting the whole ``MjData`` each step.
 
