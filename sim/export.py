@@ -19,9 +19,9 @@ else to train. Each frame is a pure function of (seed, j, t), so:
 ROS2 bag (``rosbags``, pure Python, no ROS install): ``/lidar/points``
 (sensor_msgs/PointCloud2 with float32 x, y, z, intensity, frame "lidar") and
 ``/lidar/objects`` (visualization_msgs/MarkerArray, a DELETEALL, then one CUBE per object:
-pose = box centre
-and yaw, scale = (length, width, height), ``ns`` = class name, ``id`` = label line,
-``text`` = "class occlusion"), one message pair per frame at t = (frame + 1) * frame_dt.
+pose = box centre and yaw, scale = (length, width, height), ``ns`` = class name, ``id`` =
+label line, ``text`` = "class occlusion"), one message pair per frame at t = (frame + 1) *
+frame_dt.
 """
 
 from __future__ import annotations
