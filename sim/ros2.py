@@ -2,8 +2,8 @@
 
 Publishes simulated scenes frame by frame at sensor rate: sensor_msgs/PointCloud2 (float32
 x, y, z, intensity) on ``--topic`` and the ground truth as visualization_msgs/MarkerArray
-(a DELETEALL, then one CUBE per object, as in the exported bags: ``ns`` = class, ``text`` = "class
-occlusion"; each marker lives two frame periods so RViz drops objects that left) on
+(a DELETEALL, then one CUBE per object, as in the exported bags: ``ns`` = class, ``text`` =
+"class occlusion"; each marker lives two frame periods so RViz drops objects that left) on
 ``--objects-topic``, stamped with the publish time. Scenes are the consecutive-frame
 sequences of ``generate.generate_sequences`` (people and robots move, the lidar rides its
 robot); scene j uses ``fold_in(key(seed), j)``. A thread generates frames ahead of the
