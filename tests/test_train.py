@@ -657,3 +657,27 @@ def test_sweep_logs_the_mean_loss_of_each_window(data, tmp_path, monkeypatch):
     assert [(r["step"], r["steps"]) for r in records] == [(3, 3), (6, 3), (7, 1)]
     for record, window in zip(records, windows, strict=True):
         np.testing.assert_allclose(record["loss"], [np.mean(window), 2 * np.mean(window)])
+
+
+def test_prefetch_finishes_its_dispatched_work_when_the_consumer_stops():
+    """Stopped early (an error in the step, say), prefetch lets its worker end and blocks
+    on the batches it had dispatched, so that none is left queued at interpreter exit (a
+    queued Warp kernel calls back into Python and could hang the exit)."""
+    import threading
+
+    made = []
+
+    def source(step):
+        time.sleep(0.05)
+        made.append(jnp.full((4,), step))
+        return made[-1]
+
+    before = set(threading.enumerate())
+    steps = T.prefetch(source, 0, 100, size=2)
+    assert [next(steps)[0] for _ in range(3)] == [0, 1, 2]
+    time.sleep(0.3)  # the worker fills the queue and waits to put the next batch
+    steps.close()
+    assert set(threading.enumerate()) <= before  # the worker has ended
+    assert 3 <= len(made) < 100  # it stopped early ...
+    for x in made:  # ... and every batch it made is complete
+        assert x.is_ready()

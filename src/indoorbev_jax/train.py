@@ -453,7 +453,8 @@ def prefetch(source: Callable[[int], Batch], start: int, stop: int, size: int = 
             if item[2] is not None:
                 return
 
-    threading.Thread(target=work, daemon=True).start()
+    worker = threading.Thread(target=work, daemon=True, name="indoorbev-prefetch")
+    worker.start()
     try:
         for _ in range(start, stop):
             s, batch, error = q.get()
@@ -462,6 +463,16 @@ def prefetch(source: Callable[[int], Batch], start: int, stop: int, size: int = 
             yield s, batch
     finally:
         done.set()
+        # Let the worker stop and finish what it dispatched: the simulator's Warp kernels
+        # call back into Python, and an interpreter that shuts down under a queued one
+        # can hang in its exit (seen after an error raised mid-run).
+        while worker.is_alive() or not q.empty():
+            try:
+                _, batch, _ = q.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if batch is not None:
+                jax.block_until_ready(batch)
 
 
 # Checkpoints ------------------------------------------------------------------------------
