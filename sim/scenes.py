@@ -85,10 +85,10 @@ class GeomModel:
     takes 5-15 s here). ``to_mjx`` builds the real MJX model/data of the same scenes.
     """
 
-    geom_size: jax.Array  # float32 [B, G, 3]
+    geom_size: jax.Array  # float32 [B, G, 3] (or [G, 3]: one scene)
     geom_rgba: jax.Array  # float32 [G, 4]
     geom_matid: jax.Array  # int32 [G]
-    mat_rgba: jax.Array  # float32 [0, 4]
+    mat_rgba: jax.Array  # float32 [nmat, 4] (none in generated scenes)
     geom_type: np.ndarray = struct.field(pytree_node=False)  # [G], static
     geom_bodyid: np.ndarray = struct.field(pytree_node=False)
     geom_group: np.ndarray = struct.field(pytree_node=False)
@@ -106,12 +106,17 @@ class GeomData:
 
 def geom_model(tpl: SceneTemplate, size: jax.Array) -> GeomModel:
     """Model view of B scenes with geom sizes ``size`` [B, G, 3]."""
-    m = tpl.mj_model
+    return geom_model_of(tpl.mj_model, size)
+
+
+def geom_model_of(m: mujoco.MjModel, size: jax.Array) -> GeomModel:
+    """Model view of the geoms of ``m`` with sizes ``size`` ([G, 3], or [B, G, 3] for B
+    scenes), materials included (alpha 0 hides a geom, as in ``mj_ray``)."""
     return GeomModel(
         geom_size=size,
         geom_rgba=jnp.asarray(m.geom_rgba, jnp.float32),
         geom_matid=jnp.asarray(m.geom_matid, jnp.int32),
-        mat_rgba=jnp.zeros((0, 4), jnp.float32),
+        mat_rgba=jnp.asarray(m.mat_rgba, jnp.float32).reshape(-1, 4),
         geom_type=np.asarray(m.geom_type),
         geom_bodyid=np.asarray(m.geom_bodyid),
         geom_group=np.asarray(m.geom_group),

@@ -219,7 +219,7 @@ class MjLidar:
         **cast_kwargs,
     ):
         import mujoco
-        from indoorbev_sim.scenes import GeomData, GeomModel
+        from indoorbev_sim.scenes import GeomData, geom_model_of
 
         site_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
         if site_id < 0:
@@ -230,17 +230,7 @@ class MjLidar:
         cast_kwargs.setdefault("bodyexclude", body if body > 0 else -1)
         # Only the fields rays read: mjx.put_model would refuse many robot models for
         # collision pairs MJX lacks (cylinder-box, meshes), which a lidar never needs.
-        geoms = GeomModel(
-            geom_size=jnp.asarray(model.geom_size, jnp.float32),
-            geom_rgba=jnp.asarray(model.geom_rgba, jnp.float32),
-            geom_matid=jnp.asarray(model.geom_matid, jnp.int32),
-            mat_rgba=jnp.asarray(model.mat_rgba, jnp.float32).reshape(-1, 4),
-            geom_type=np.asarray(model.geom_type),
-            geom_bodyid=np.asarray(model.geom_bodyid),
-            geom_group=np.asarray(model.geom_group),
-            body_weldid=np.asarray(model.body_weldid),
-            nbody=model.nbody,
-        )
+        geoms = geom_model_of(model, jnp.asarray(model.geom_size, jnp.float32))
         refl = None if reflectivity is None else jnp.asarray(reflectivity, jnp.float32)
 
         def run(geom_xpos, geom_xmat, site_pos, site_mat, frame, key):

@@ -90,31 +90,28 @@ class Predictions(_ByName):
     masks: jax.Array
 
 
+def _from_mapping(cls, x, name: str, optional: tuple[str, ...] = ()):
+    """``x`` if it is a ``cls``, or a mapping with the fields of ``cls`` as one (fields in
+    ``optional`` may be left out: None); a ``TypeError`` naming missing or unknown keys."""
+    if isinstance(x, cls):
+        return x
+    if isinstance(x, Mapping):
+        fields = tuple(cls.__dataclass_fields__)
+        missing = [k for k in fields if k not in x and k not in optional]
+        unknown = [k for k in x if k not in fields]
+        if missing or unknown:
+            raise TypeError(f"{name}: missing {missing}, unknown {unknown}; fields {fields}")
+        return cls(**{**dict.fromkeys(optional), **x})
+    raise TypeError(f"{name}: expected {cls.__name__} or a mapping, got {type(x).__name__}")
+
+
 def as_predictions(x: Predictions | Mapping) -> Predictions:
     """``x``, or a mapping with the fields of ``Predictions`` as one (a ``TypeError``
     naming the missing or unknown keys otherwise)."""
-    if isinstance(x, Predictions):
-        return x
-    if isinstance(x, Mapping):
-        fields = tuple(Predictions.__dataclass_fields__)
-        if set(x) != set(fields):
-            missing = [k for k in fields if k not in x]
-            unknown = [k for k in x if k not in fields]
-            raise TypeError(f"predictions: missing {missing}, unknown {unknown}; fields {fields}")
-        return Predictions(**x)
-    raise TypeError(f"predictions: expected Predictions or a mapping, got {type(x).__name__}")
+    return _from_mapping(Predictions, x, "predictions")
 
 
 def as_targets(x: Targets | Mapping) -> Targets:
     """``x``, or a mapping with the fields of ``Targets`` as one; ``instance_ids`` may be
     left out (the loss does not read it). Missing or unknown keys are a ``TypeError``."""
-    if isinstance(x, Targets):
-        return x
-    if isinstance(x, Mapping):
-        fields = tuple(Targets.__dataclass_fields__)
-        missing = [k for k in fields if k not in x and k != "instance_ids"]
-        unknown = [k for k in x if k not in fields]
-        if missing or unknown:
-            raise TypeError(f"targets: missing {missing}, unknown {unknown}; fields {fields}")
-        return Targets(**{"instance_ids": None, **x})
-    raise TypeError(f"targets: expected Targets or a mapping, got {type(x).__name__}")
+    return _from_mapping(Targets, x, "targets", optional=("instance_ids",))

@@ -236,8 +236,9 @@ def parse_label_lines(lines: list[str], data: DataConfig, source: str) -> Object
                 f"{list(data.class_names)} or a name mapped in data.class_map)",
             ) from None  # fmt: skip
         try:
-            if any("_" in v for v in fields[1:]):  # float() reads "0_5" as 5.0
-                raise ValueError(f"'_' in {next(v for v in fields[1:] if '_' in v)!r}")
+            separated = next((v for v in fields[1:] if "_" in v), None)
+            if separated is not None:  # float() reads "0_5" as 5.0
+                raise ValueError(f"'_' in {separated!r}")
             values = [float(v) for v in fields[1:]]
         except ValueError as e:
             raise _label_error(source, lineno, f"non-numeric field ({e})") from None
