@@ -14,7 +14,8 @@ import argparse
 from indoorbev_jax.config import add_config_arguments, config_from_args
 from indoorbev_jax.sweep import run_sweep, stack_hypers
 
-WEIGHTS = ("cls", "dice", "focal", "dims", "pos", "yaw", "background")
+# "seed" only with the seed head (--set head.query_init=select or head.semantic_head=true).
+WEIGHTS = ("cls", "dice", "focal", "dims", "pos", "yaw", "background", "seed")
 
 
 def main(argv=None) -> None:

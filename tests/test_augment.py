@@ -254,3 +254,33 @@ def test_integer_probabilities_work():
                            "intensity_drop_prob": 1, "flip_prob": 1})  # fmt: skip
     out = aug.augment(jax.random.key(0), make_frame(), GRID, cfg)
     assert (np.asarray(out.points[:, 3]) == 0).all()
+
+
+def test_augmentation_lowers_to_plain_xla_ops():
+    """No foreign calls in the chain (the train step's augmentation): a 2 x 2 inverse by
+    jnp.linalg.inv lowered to LAPACK calls on the CPU and cuSOLVER ones on a GPU."""
+    batch = jax.tree.map(lambda *a: jnp.stack(a), make_frame(0), make_frame(1))
+    lowered = jax.jit(aug.augment_batch, static_argnums=(2, 3)).lower(
+        jax.random.key(7), batch, GRID, CFG.augment
+    )
+    assert "custom_call" not in lowered.as_text()
+
+
+@pytest.mark.parametrize("flip", [0.0, 1.0])
+def test_global_transform_warps_masks_by_the_exact_inverse(flip):
+    """The masks are resampled through the inverse of the point map: equal to warping by
+    numpy's inverse of the same matrix."""
+    frame = make_frame()
+    cfg = dataclasses.replace(OFF, flip_prob=flip, rotation=np.pi, scale_range=(0.8, 1.2))
+    key = jax.random.key(3)
+    out = aug.global_transform(key, frame, GRID, cfg)
+    # The point map, read back from the transformed points (xy -> linear @ xy).
+    xy, new_xy = np.asarray(frame.points[:450, :2]), np.asarray(out.points[:450, :2])  # objects
+    linear = np.linalg.lstsq(xy, new_xy, rcond=None)[0].T
+    inverse = np.concatenate([np.linalg.inv(linear), np.zeros((2, 1))], axis=1)
+    want = aug.warp_masks(
+        frame.targets.masks,
+        jnp.broadcast_to(jnp.asarray(inverse, jnp.float32), (frame.targets.masks.shape[0], 2, 3)),
+        GRID,
+    )
+    np.testing.assert_array_equal(out.targets.masks[:3], want[:3])

@@ -101,12 +101,15 @@ def global_transform(key: jax.Array, frame: Batch, grid: GridConfig, cfg: Augmen
     scale = jax.random.uniform(k_scale, (), minval=cfg.scale_range[0], maxval=cfg.scale_range[1])
     mirror = jnp.diag(jnp.array([1.0, jnp.where(flip, -1.0, 1.0)]))
     linear = scale * _rot(theta) @ mirror  # [2, 2], points: xy -> linear @ xy
+    # Closed form (mirror is its own inverse): jnp.linalg.inv would put LAPACK / cuSOLVER
+    # calls into the train step.
+    linear_inverse = mirror @ _rot(-theta) / scale
     t = frame.targets
     xy = frame.points[:, :2] @ linear.T
     points = jnp.concatenate([xy, frame.points[:, 2:3] * scale, frame.points[:, 3:]], axis=1)
     pos = jnp.concatenate([t.pos[:, :2] @ linear.T, t.pos[:, 2:] * scale], axis=1)
     yaw = wrap_angle(jnp.where(flip, -t.yaw, t.yaw) + theta)
-    inverse = jnp.concatenate([jnp.linalg.inv(linear), jnp.zeros((2, 1))], axis=1)  # [2, 3]
+    inverse = jnp.concatenate([linear_inverse, jnp.zeros((2, 1))], axis=1)  # [2, 3]
     masks = warp_masks(t.masks, jnp.broadcast_to(inverse, (t.masks.shape[0], 2, 3)), grid)
     targets = t.replace(pos=pos, dims=t.dims * scale, yaw=yaw, masks=masks)
     return _finish(points, frame.point_valid, targets, grid)

@@ -42,6 +42,13 @@ def stack_hypers(config: Config, learning_rates, weight_overrides: dict[str, lis
     """K ``Hyper`` stacked on a leading axis; weights not overridden come from the config."""
     base = Hyper.from_config(config)
     k = len(learning_rates)
+    unknown = sorted(set(weight_overrides) - set(base.weights))
+    if unknown:
+        extra = " (the seed weight needs the seed head)" if "seed" in unknown else ""
+        raise ValueError(
+            f"--{unknown[0]}-weights: this config has no such loss weight{extra}; "
+            f"it has {sorted(base.weights)}"
+        )
     weights = {}
     for name, value in base.weights.items():
         values = weight_overrides.get(name)

@@ -79,13 +79,17 @@ class TrainState:
     skipped: jax.Array
 
 
+SEED_KEY = "seed"  # Hyper.weights entry of the seed loss (losses.seed_loss)
+
+
 @struct.dataclass
 class Hyper:
     """Traced hyperparameters: a leading axis K of these trains K models under vmap.
 
     Attributes:
       learning_rate: peak learning rate (scalar array).
-      weights: loss weights as ``LossConfig.weights()`` names them (scalar arrays).
+      weights: loss weights as ``LossConfig.weights()`` names them, plus ``"background"``
+        and, when the network has the seed head, ``"seed"`` (scalar arrays).
     """
 
     learning_rate: jax.Array
@@ -95,6 +99,8 @@ class Hyper:
     def from_config(cls, config: Config) -> Hyper:
         weights = config.loss.weights()
         weights["background"] = config.loss.background_weight
+        if config.has_seed_head:
+            weights[SEED_KEY] = config.loss.seed_weight
         return cls(
             learning_rate=jnp.float32(config.train.learning_rate),
             weights={k: jnp.float32(v) for k, v in weights.items()},
@@ -288,14 +294,15 @@ def make_train_step(
             loss, parts = set_loss(
                 predictions,
                 batch.targets,
-                hyper.weights,
+                {k: v for k, v in hyper.weights.items() if k != SEED_KEY},
                 config.loss,
                 key=k_loss if needs_loss_key else None,
             )
             if seeded:
                 (seeds,) = inter["intermediates"]["head"]["seeds"]
                 parts["seed"] = seed_loss(seeds, batch.targets, config.loss)
-                loss = loss + config.loss.seed_weight * parts["seed"]
+                seed_weight = hyper.weights.get(SEED_KEY, config.loss.seed_weight)
+                loss = loss + seed_weight * parts["seed"]
             return loss, parts
 
         (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)

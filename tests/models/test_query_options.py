@@ -177,6 +177,11 @@ def test_select_train_step_adds_the_weighted_seed_loss(tmp_path):
     set_total = sum(float(hyper.weights[t]) * float(m[t]) for t in losses.TERMS)
     np.testing.assert_allclose(float(m["loss"]), set_total + 3.0 * float(m["seed"]), rtol=1e-5)
     assert bool(m["finite"]) and float(m["seed"]) > 0
+    # The seed weight is a traced Hyper entry, so sweeps vmap over it; same compiled step.
+    assert float(hyper.weights["seed"]) == 3.0
+    halved = hyper.replace(weights=dict(hyper.weights, seed=jnp.float32(0.5)))
+    _, m2 = step(state, batch, jax.random.key(1), halved)
+    np.testing.assert_allclose(float(m2["loss"]), set_total + 0.5 * float(m["seed"]), rtol=1e-5)
     second, _ = step(first, batch, jax.random.key(1), hyper)  # step 0 has lr 0 (warm-up)
 
     def seed_kernel(s):
