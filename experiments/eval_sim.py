@@ -5,7 +5,13 @@ object variants ``sim.test_variants``, never drawn for train or val) under a roo
 training never uses: training draws ``fold_in(key(train.seed), 0)`` for its batches and
 ``fold_in(key(train.seed), 1)`` for validation, this script ``key(--seed)`` with a seed far
 from the training seeds. Batch k of the set is ``generate_batch(fold_in(key(seed), k))``,
-so the set is the same on every run and machine (up to float rounding of the simulator).
+so the set is the same on every run and machine (up to float rounding of the simulator) for
+one ``--batch`` (frame i of batch k is keyed by ``fold_in(fold_in(key(seed), k), i)``).
+
+``--split val`` draws the training plans and variants (there are no val-only layouts) under
+its own root seed, ``VAL_SEED``, so that choices made on it (thresholds, views, which model
+to ship) are not made on frames paired with the test set's: with one root, val frame i and
+test frame i shared the layout kind, the sensor noise and most object draws.
 
 Prints the per-class table and the class confusion at mask IoU 0.5 (which class each object
 was detected as, or missed; ``metrics.class_confusion``), then the same counts per object
@@ -47,10 +53,16 @@ from indoorbev_jax.metrics import Evaluator, format_percent
 from indoorbev_jax.predict import load_model
 
 TEST_SEED = 1_000_003  # root seed of the held-out test set (training uses train.seed, 0)
+VAL_SEED = 1_000_033  # root seed of --split val (before 2026-12-05 it was TEST_SEED too)
 POINT_EDGES = (10, 30, 100, 300)  # lidar returns on the object
 RANGE_EDGES = (2.0, 3.0, 4.0, 5.0)  # metres from the sensor to the box centre, in the BEV plane
 AREA_EDGES = (10, 25, 50, 100)  # grid cells of the footprint mask
 OCCLUSION_NAMES = ("0 (>=75% seen)", "1 (40-75%)", "2 (<40%)", "3 (no primitive seen)")
+
+
+def default_seed(split: str) -> int:
+    """The root seed ``--split`` uses when ``--seed`` is not given."""
+    return {"test": TEST_SEED, "val": VAL_SEED}[split]
 
 
 def _interval_names(edges, unit: str) -> tuple[str, ...]:
@@ -180,7 +192,8 @@ def main(argv=None) -> None:
     p.add_argument("--split", default="test", choices=("test", "val"))
     p.add_argument("--frames", type=int, default=512)
     p.add_argument("--batch", type=int, default=8)
-    p.add_argument("--seed", type=int, default=TEST_SEED)
+    seeds = f"{TEST_SEED} for test, {VAL_SEED} for val"
+    p.add_argument("--seed", type=int, default=None, help=f"root seed (default: {seeds})")
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument(
         "--score-threshold",
@@ -212,6 +225,8 @@ def main(argv=None) -> None:
     )
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
+    if args.seed is None:
+        args.seed = default_seed(args.split)
     try:
         config, params = load_model(args.model)
     except (OSError, ValueError) as e:

@@ -267,3 +267,23 @@ def test_train_script_refusals_are_one_line(tmp_path, capsys, monkeypatch):
     assert status == 2
     assert "train.py: error: " in err and "the workdir holds a run with another config" in err
     assert "Traceback" not in err
+
+
+def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
+    """Under one root, val frame i and test frame i shared their sensor noise key, frame time
+    and scan pattern frame (and most object draws), so choices made on val were made on
+    near-copies of the test frames. Each split now has its own root."""
+    import jax
+    import numpy as np
+    from indoorbev_sim.generate import jitted_draw
+
+    eval_sim = _script("eval_sim")
+    config = Config.tiny()
+    draws = {}
+    for split in ("val", "test"):
+        key = jax.random.fold_in(jax.random.key(eval_sim.default_seed(split)), 0)
+        _, time, frame_index, noise = jitted_draw(config, split, 4)(key)
+        draws[split] = np.asarray(time), int(frame_index), jax.random.key_data(noise)
+    (t_val, f_val, n_val), (t_test, f_test, n_test) = draws["val"], draws["test"]
+    assert not np.isin(t_val, t_test).any()
+    assert f_val != f_test and not np.array_equal(n_val, n_test)

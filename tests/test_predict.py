@@ -457,6 +457,7 @@ def test_bag_out_keeps_stamps_and_never_replaces_other_folders(model_file, tmp_p
     for target, match in ((mine, "mine: exists and is not a bag written on topics"),
                           (other, "other: exists and is not a bag .* topics are \\['/cloud'\\]"),
                           (out, "would replace --out"), (bag, "would replace INPUT"),
+                          (bag / "sub", "lies inside the INPUT bag"),
                           (tmp_path, "would replace INPUT")):  # fmt: skip
         with pytest.raises(ValueError, match=match):
             P.predict(model_file, bag, out, bag_out=target, **run)
@@ -502,8 +503,9 @@ def test_input_errors_name_the_path_and_empty_clouds_are_said(model_file, tmp_pa
         P.predict(model_file, tmp_path / "scan.bin", tmp_path / "o", topic="/x", verbose=False)
     bag = tmp_path / "bag"
     _cloud_bag(bag, _scans(1), [1], [1])
-    with pytest.raises(ValueError, match=r"bag\.db3: a bag's storage file; pass the bag folder"):
-        P.predict(model_file, bag / "bag.db3", tmp_path / "o", verbose=False)
+    for topic in (None, "/cloud"):  # the advice, not "--topic applies to bags only"
+        with pytest.raises(ValueError, match=r"bag\.db3: a storage file of the bag .*bag; pass"):
+            P.predict(model_file, bag / "bag.db3", tmp_path / "o", topic=topic, verbose=False)
     with pytest.raises(BagError, match=r"no topic '/x'; topics: \['/cloud \(sensor_msgs/msg/Po"):
         P.predict(model_file, bag, tmp_path / "o", topic="/x", verbose=False)
     far = np.full((50, 4), 1e3, np.float32)
@@ -545,3 +547,53 @@ def test_input_listing_skips_hidden_files_and_reads_upper_case_bin(tmp_path):
     (frame,) = list(frames)
     assert count == 1 and frame.frame_id == "SCAN"
     np.testing.assert_array_equal(frame.points, scans[0])
+
+
+def test_lone_storage_file_reads_as_its_bag(model_file, tmp_path):
+    """A .db3 / .mcap without metadata.yaml beside it (a Foxglove recording, a killed
+    recording recovered) is read as the bag it holds, frame for frame."""
+    scans = _scans(2)
+    bag = tmp_path / "bag"
+    _cloud_bag(bag, scans, [1, 2], [1, 2])
+    lone = tmp_path / "lone.db3"
+    lone.write_bytes((bag / "bag.db3").read_bytes())
+    count, frames = P.open_input(lone)
+    got = list(frames)
+    assert count == 2 and [f.frame_id for f in got] == ["000000", "000001"]
+    for frame, scan in zip(got, scans, strict=True):
+        np.testing.assert_array_equal(frame.points, scan)
+    run = dict(pictures=False, verbose=False)
+    P.predict(model_file, bag, tmp_path / "a", **run)
+    P.predict(model_file, lone, tmp_path / "b", topic="/cloud", **run)
+    for k in range(2):
+        name = f"label_2/{k:06d}.txt"
+        assert (tmp_path / "a" / name).read_text() == (tmp_path / "b" / name).read_text()
+
+
+def test_topic_with_a_second_message_type_reads_its_clouds_only(tmp_path):
+    """A topic that also carries another type (two connections) yields its clouds; before,
+    the first non-cloud message ended the run with an AttributeError."""
+    from rosbags.rosbag2 import Writer
+
+    from indoorbev_jax.rosbag import POINTCLOUD2, cloud_msg, iter_clouds
+
+    ts = typestore()
+    scans = _scans(2)
+    bag = tmp_path / "mixed"
+    with Writer(bag, version=8) as writer:
+        clouds = writer.add_connection("/livox/lidar", POINTCLOUD2, typestore=ts)
+        string = ts.types["std_msgs/msg/String"]
+        other = writer.add_connection("/livox/lidar", "std_msgs/msg/String", typestore=ts)
+        writer.write(clouds, 1, ts.serialize_cdr(cloud_msg(ts, scans[0], 1, "os"), POINTCLOUD2))
+        writer.write(other, 2, ts.serialize_cdr(string(data="hi"), "std_msgs/msg/String"))
+        writer.write(clouds, 3, ts.serialize_cdr(cloud_msg(ts, scans[1], 3, "os"), POINTCLOUD2))
+    got = list(iter_clouds(bag, "/livox/lidar"))
+    assert [c.error for c in got] == [None, None] and [c.log_ns for c in got] == [1, 3]
+    for cloud, scan in zip(got, scans, strict=True):
+        np.testing.assert_array_equal(cloud.points, scan)
+    with pytest.raises(BagError, match=r"topic '/s' is std_msgs/msg/String, not one of"):
+        only = tmp_path / "only"
+        with Writer(only, version=8) as writer:
+            conn = writer.add_connection("/s", "std_msgs/msg/String", typestore=ts)
+            writer.write(conn, 1, ts.serialize_cdr(string(data="x"), "std_msgs/msg/String"))
+        list(iter_clouds(only, "/s"))

@@ -217,9 +217,15 @@ def _bag_frames(path: Path, topic: str | None) -> Iterator[Frame]:
 def open_input(path: str | os.PathLike, topic: str | None = None) -> tuple[int, Iterator[Frame]]:
     """(number of frames, an iterator of ``Frame``) over INPUT: a ``.bin`` file, a
     KITTI-style folder (``velodyne/*.bin``) or a ROS 2 bag folder. A frame that cannot be read
-    comes with its ``error`` set, so that a caller may skip it; a bad INPUT path raises."""
+    comes with its ``error`` set, so that a caller may skip it; a bad INPUT path raises.
+    A bag's ``.db3`` / ``.mcap`` file is read on its own when no ``metadata.yaml`` lies beside
+    it (a Foxglove recording, a recovered killed one)."""
     path = Path(path)
-    is_bag = path.is_dir() and (path / "metadata.yaml").exists()
+    storage_file = path.is_file() and path.suffix.lower() in (".db3", ".mcap")
+    if storage_file and (path.parent / "metadata.yaml").exists():
+        # One file of a bag may hold only part of it: read the whole bag.
+        raise ValueError(f"{path}: a storage file of the bag {path.parent}; pass that folder")
+    is_bag = storage_file or (path.is_dir() and (path / "metadata.yaml").exists())
     if topic is not None and path.exists() and not is_bag:
         raise ValueError(f"{path}: --topic {topic} applies to ROS 2 bag input only")
     if path.is_file() and path.suffix.lower() == ".bin":
@@ -233,8 +239,6 @@ def open_input(path: str | os.PathLike, topic: str | None = None) -> tuple[int, 
         return count_clouds(path, topic), _bag_frames(path, topic)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
-    if path.is_file() and path.suffix in (".db3", ".mcap"):
-        raise ValueError(f"{path}: a bag's storage file; pass the bag folder {path.parent}")
     raise ValueError(
         f"{path}: expected a .bin file, a KITTI-style folder with velodyne/, or a "
         f"ROS 2 bag folder with metadata.yaml"
@@ -465,6 +469,9 @@ def predict(
         for other, what in ((Path(input_path).resolve(), "INPUT"), (out.resolve(), "--out")):
             if bag == other or bag in other.parents:
                 raise ValueError(f"--bag-out {bag_out} would replace {what} {other}")
+        source = Path(input_path).resolve()
+        if source.is_dir() and (source / "metadata.yaml").exists() and source in bag.parents:
+            raise ValueError(f"--bag-out {bag_out} lies inside the INPUT bag {source}")
         check_bag_target(bag_out, ("/points", "/detections"))
     run = {
         "format": PREDICT_FORMAT,

@@ -311,11 +311,13 @@ def _cloud_topics(reader, bag: Path, topic: str | None) -> list:
         chosen = [c for c in reader.connections if c.topic == topic]
         if not chosen:
             raise BagError(f"{bag}: no topic '{topic}'; topics: {every}")
-        if chosen[0].msgtype not in CLOUD_TYPES:
-            raise BagError(
-                f"{bag}: topic '{topic}' is {chosen[0].msgtype}, not one of {CLOUD_TYPES}"
-            )
-        return chosen
+        # A topic may carry several connections, of several types: read the clouds only.
+        clouds = [c for c in chosen if c.msgtype in CLOUD_TYPES]
+        if not clouds:
+            types = sorted({c.msgtype for c in chosen})
+            raise BagError(f"{bag}: topic '{topic}' is {' and '.join(types)}, not one of "
+                           f"{CLOUD_TYPES}")  # fmt: skip
+        return clouds
     clouds = [c for c in reader.connections if c.msgtype in CLOUD_TYPES]
     names = sorted({c.topic for c in clouds})
     if not names:
@@ -356,14 +358,15 @@ def _decode(ts, conn, raw, source: str) -> tuple[int | None, str, np.ndarray]:
 
 
 def iter_clouds(bag: str | os.PathLike, topic: str | None = None) -> Iterator[Cloud]:
-    """Yields every cloud message of a bag's cloud topic as a ``Cloud``, in record order.
+    """Yields every cloud message of a bag's cloud topic as a ``Cloud``, in record-time order.
 
     A message that cannot be decoded is yielded with its ``error`` set (and no points), so
     that a caller may skip it and go on; a bag whose storage cannot be opened or read any
     further raises ``BagError``, naming the bag and the last frame read.
 
     Args:
-      bag: a rosbag2 folder (sqlite3 or MCAP storage) holding sensor_msgs/PointCloud2 or
+      bag: a rosbag2 folder (sqlite3 or MCAP storage), or one such storage file on its own,
+        holding sensor_msgs/PointCloud2 or
         livox_ros_driver2/CustomMsg (intensity = Livox reflectivity 0-255).
       topic: topic name; None picks the only such topic (an error when several).
     """
@@ -389,7 +392,7 @@ def iter_clouds(bag: str | os.PathLike, topic: str | None = None) -> Iterator[Cl
                 yield Cloud(index, log_ns, stamp, frame, points)
             except BagError as e:
                 yield Cloud(index, log_ns, None, "", None, e)
-            except (SerdeError, ValueError) as e:
+            except (SerdeError, ValueError, AttributeError, TypeError) as e:
                 error = BagError(f"{source}: cannot decode {conn.msgtype}: {e}")
                 yield Cloud(index, log_ns, None, "", None, error)
             index += 1
@@ -404,7 +407,8 @@ def read_clouds(
     first message that cannot be read raises its ``BagError`` (``iter_clouds`` goes on).
 
     Args:
-      bag: a rosbag2 folder (sqlite3 or MCAP storage) holding sensor_msgs/PointCloud2 or
+      bag: a rosbag2 folder (sqlite3 or MCAP storage), or one such storage file on its own,
+        holding sensor_msgs/PointCloud2 or
         livox_ros_driver2/CustomMsg (intensity = Livox reflectivity 0-255).
       topic: topic name; None picks the only such topic (an error when several).
     """
