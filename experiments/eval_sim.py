@@ -40,6 +40,7 @@ import argparse
 import dataclasses
 import itertools
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -244,6 +245,10 @@ def main(argv=None) -> None:
             inferences.append(dataclasses.replace(config, inference=inference).inference)
         except ConfigError as e:
             p.error(str(e))
+    from indoorbev_sim.scenes import held_out_note
+
+    if args.split == "test" and (note := held_out_note(config.sim)):
+        print(note, file=sys.stderr)
     start = time.perf_counter()
     evaluators = evaluate_sim_sweep(
         config, params, args.split, args.frames, args.batch, args.seed, inferences,

@@ -230,6 +230,7 @@ def export(
       ExportError: ``out`` is a file, holds an export with other settings, or dataset files
         without export.json; ``rosbag`` overlaps ``out`` or cannot be created.
     """
+    from indoorbev_sim.scenes import held_out_note
     from tqdm import tqdm
 
     check_whole("frames", frames, 1)
@@ -252,6 +253,8 @@ def export(
     done = frames - sum(len(scenes[j]) for j in todo)
     if done:
         print(f"resuming: {done} of {frames} frames already written", file=sys.stderr)
+    if note := held_out_note(config.sim):
+        print(note, file=sys.stderr)
     key = jax.random.key(seed)
     splits: dict[str, list[str]] = {s: [] for s in SPLITS}
     for j, ids in enumerate(scenes):

@@ -223,6 +223,29 @@ def allowed_plans(sim: SimConfig, split: str) -> np.ndarray:
     return np.asarray(out, np.int32)
 
 
+def held_out_by_layout(sim: SimConfig) -> bool:
+    """Whether the test split's plans are all kept out of train and val. False when no plan
+    of ``sim.test_layouts`` lies in ``sim.layouts``: test then draws the training plans."""
+    try:
+        train = allowed_plans(sim, "train")
+    except ValueError:  # every plan held out
+        return True
+    return not np.isin(allowed_plans(sim, "test"), train).any()
+
+
+HELD_OUT_NOTE = (
+    "note: no plan of sim.test_layouts {held} lies in sim.layouts {kinds}, so the test split "
+    "draws the training plans: its frames are not held out by layout"
+)
+
+
+def held_out_note(sim: SimConfig) -> str | None:
+    """``HELD_OUT_NOTE`` for ``sim`` when its test plans are the training plans, else None."""
+    if held_out_by_layout(sim):
+        return None
+    return HELD_OUT_NOTE.format(held=list(sim.test_layouts), kinds=list(sim.layouts))
+
+
 def allowed_variants(sim: SimConfig, split: str) -> np.ndarray:
     """bool [NUM_CLASSES, max variants]: which variants a split may draw."""
     vmax = max(len(c.variants) for c in CLASSES)

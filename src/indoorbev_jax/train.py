@@ -49,8 +49,10 @@ from indoorbev_jax.xla_flags import train_compiler_options
 log = logging.getLogger("indoorbev_jax.train")
 
 # What each use of the run's root key ``key(train.seed)`` folds in: one constant per use, so
-# no two draw the same numbers. The data streams keep 0 and 1, which
-# ``experiments/eval_sim.py`` keeps its test frames clear of.
+# no two uses within a run draw the same numbers. The data streams keep 0 and 1, which
+# ``experiments/eval_sim.py`` keeps its val and test frames clear of. (``indoorbev-sim export
+# --seed a`` roots its scene j at ``fold_in(key(a), j)``, so its scenes 0-3 share these
+# keys in another role: no scene key is shared, so no frame is.)
 KEY_TRAIN_DATA, KEY_VAL_DATA, KEY_INIT, KEY_STEPS = 0, 1, 2, 3
 
 # Fields a resumed run may change: they set when to log, evaluate and checkpoint and how many

@@ -98,6 +98,22 @@ def test_splits_hold_out_plans_and_variants(sampled):
     assert scenes.allowed_variants(CFG.sim, "test")[trolley]
 
 
+def test_a_test_split_without_held_out_plans_is_said():
+    """Test falls back to the training plans when no held-out plan lies in sim.layouts; the
+    export and eval_sim say so instead of calling its frames held out."""
+    assert scenes.held_out_by_layout(CFG.sim) and scenes.held_out_note(CFG.sim) is None
+    for sim in (
+        dataclasses.replace(CFG.sim, layouts=("office",), test_layouts=("lab/7",)),
+        dataclasses.replace(CFG.sim, test_layouts=()),
+    ):
+        test, train = scenes.allowed_plans(sim, "test"), scenes.allowed_plans(sim, "train")
+        assert np.isin(test, train).all()  # the fallback the note is about
+        assert not scenes.held_out_by_layout(sim)
+        assert "not held out by layout" in scenes.held_out_note(sim)
+    office = dataclasses.replace(CFG.sim, layouts=("office",), test_layouts=("office/7",))
+    assert scenes.held_out_by_layout(office)
+
+
 def test_variant_ids_index_all_variants():
     pairs = [(c, v) for c, spec in enumerate(objects.CLASSES) for v in range(len(spec.variants))]
     classes, variants = np.array(pairs).T
