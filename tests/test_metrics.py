@@ -729,3 +729,38 @@ def test_eval_cli_matches_metric_functions(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "1 of 3 frames have no prediction label file, e.g. " in printed
     assert "pred/label_2/c.txt (write an empty file" in printed
+
+
+def test_eval_cli_says_which_objects_have_no_cell(tmp_path, capsys):
+    """Objects whose mask has no cell are left out of AP (METRICS); the command says how
+    many on each side and names one, since pycocotools would count them."""
+    from indoorbev_jax.cli import main
+    from indoorbev_jax.config import Config
+    from indoorbev_jax.data import kitti
+
+    config = Config.tiny()
+    names, (h, w) = config.data.class_names, config.grid.shape
+
+    def labels(n, scores=None):
+        one = np.ones((n, 3))
+        return kitti.ObjectLabels([1] * n, one, one * 0.5, np.zeros(n), np.zeros(n), scores)
+
+    gid = np.zeros((h, w), np.int32)
+    gid[5:9, 5:9] = 1  # object 2 of the ground truth has no cell
+    pid = np.zeros((h, w), np.int32)
+    pid[5:9, 5:9] = 2  # the high-score line 1 has no cell, line 2 is exact
+    kitti.write_labels(tmp_path / "gt/label_2/a.txt", labels(2), names)
+    kitti.write_mask(tmp_path / "gt/mask_2/a.png", gid)
+    kitti.write_labels(tmp_path / "pred/label_2/a.txt", labels(2, np.array([0.9, 0.1])), names)
+    kitti.write_mask(tmp_path / "pred/mask_2/a.png", pid)
+    argv = ["eval", "--gt", str(tmp_path / "gt"), "--pred", str(tmp_path / "pred")]
+    assert main([*argv, "--preset", "tiny"]) == 0
+    printed = capsys.readouterr().out
+    assert "note: 1 ground-truth objects have no cell in their mask and are left out of AP, " \
+        f"e.g. {tmp_path / 'gt/label_2/a.txt'}, the object of mask id 2" in printed  # fmt: skip
+    assert "note: 1 prediction objects have no cell" in printed
+    assert "the object of mask id 1" in printed
+    # An empty split file names itself.
+    (tmp_path / "gt/val.txt").write_text("\n")
+    assert main([*argv, "--preset", "tiny", "--split", "val"]) == 1
+    assert f"{tmp_path / 'gt/val.txt'}: no frames" in capsys.readouterr().out

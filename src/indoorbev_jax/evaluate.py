@@ -44,7 +44,8 @@ def _masks_of(labels, mask_path: Path, grid: GridConfig):
         ids = kitti.read_mask(mask_path, grid.shape)
         if ids.max(initial=0) > m:
             raise kitti.DatasetError(
-                f"{mask_path}: instance id {ids.max()} but the label file has only {m} lines"
+                f"{mask_path}: instance id {ids.max()} but the label file has only {m} "
+                f"objects (DontCare lines not counted)"
             )
         masks = ids[None] == np.arange(1, m + 1)[:, None, None]  # [M, H, W]
         return ids, masks
@@ -70,7 +71,11 @@ def evaluate_folders(
 
 
 def folder_evaluator(
-    gt_root: str | Path, pred_root: str | Path, config: Config, split: str | None = None
+    gt_root: str | Path,
+    pred_root: str | Path,
+    config: Config,
+    split: str | None = None,
+    notes: list[str] | None = None,
 ) -> Evaluator:
     """An ``Evaluator`` holding every frame of a ground-truth and a prediction folder.
 
@@ -79,6 +84,9 @@ def folder_evaluator(
       pred_root: KITTI-layout predictions (label_2 with scores, optional mask_2).
       config: gives the grid, the classes and the inference thresholds.
       split: frame list ``<gt_root>/<split>.txt``; None: every ground-truth label file.
+      notes: if given, receives a line per side whose objects have no cell in their mask
+        (the ``Evaluator`` leaves those out of AP, where pycocotools would count such a
+        prediction as a false positive and such a ground truth as a miss).
 
     Returns:
       The filled ``Evaluator`` (``compute()``, ``confusion()``).
@@ -90,9 +98,10 @@ def folder_evaluator(
 
     gt_root, pred_root = Path(gt_root), Path(pred_root)
     ids = kitti.read_split(gt_root, split) if split else kitti.list_frames(gt_root)
-    if not ids:
-        raise kitti.DatasetError(f"{gt_root}: no frames (label_2/*.txt or the split file)")
     where = gt_root / f"{split}.txt" if split else gt_root / "label_2"
+    if not ids:
+        raise kitti.DatasetError(f"{where}: no frames (expected frame ids, one per line)"
+                                 if split else f"{where}: no label files (*.txt)")  # fmt: skip
     for side, root in (("ground-truth", gt_root), ("prediction", pred_root)):
         missing = [i for i in ids if not kitti.frame_paths(root, i)["labels"].is_file()]
         if missing:
@@ -103,6 +112,7 @@ def folder_evaluator(
             )
     k = config.num_classes
     evaluator = Evaluator(config.inference, class_names=config.data.class_names)
+    empty = {"ground-truth": [0, None], "prediction": [0, None]}  # [count, first example]
     for frame_id in ids:
         gp, pp = kitti.frame_paths(gt_root, frame_id), kitti.frame_paths(pred_root, frame_id)
         gt = kitti.read_labels(gp["labels"], config.data)
@@ -117,12 +127,21 @@ def folder_evaluator(
         scores = pred.scores if pred.scores is not None else np.zeros(0, np.float32)
         gt_ids, gt_masks = _masks_of(gt, gp["mask"], config.grid)
         pred_ids, pred_masks = _masks_of(pred, pp["mask"], config.grid)
+        for side, path, masks in (("ground-truth", gp, gt_masks), ("prediction", pp, pred_masks)):
+            no_cell = np.flatnonzero(~masks.any(axis=(-2, -1)))
+            empty[side][0] += len(no_cell)
+            if len(no_cell) and empty[side][1] is None:
+                empty[side][1] = f"{path['labels']}, the object of mask id {no_cell[0] + 1}"
         evaluator.add_frame(
             gt=(gt_masks, gt.classes),
             det=(pred_masks, pred.classes, scores),
             gt_panoptic=(gt_ids, np.concatenate([[k], gt.classes])),
             pred_panoptic=(pred_ids, np.concatenate([[k], pred.classes])),
         )
+    for side, (count, example) in empty.items():
+        if count and notes is not None:
+            notes.append(f"note: {count} {side} objects have no cell in their mask and are left "
+                         f"out of AP, e.g. {example}")  # fmt: skip
     return evaluator
 
 
@@ -207,7 +226,8 @@ def eval_command(args: argparse.Namespace) -> int:
             out.parent.mkdir(parents=True, exist_ok=True)
             if out.is_dir():
                 raise IsADirectoryError(f"--json {out}: is a folder, expected a file name")
-        evaluator = folder_evaluator(args.gt, args.pred, config, args.split)
+        notes: list[str] = []
+        evaluator = folder_evaluator(args.gt, args.pred, config, args.split, notes)
     except (kitti.DatasetError, ConfigError, OSError) as e:
         print(f"error: {e}")
         return 1
@@ -218,6 +238,8 @@ def eval_command(args: argparse.Namespace) -> int:
         if extra:
             print(f"note: {len(extra)} prediction files have no ground truth and are not "
                   f"evaluated, e.g. {extra[0]}")  # fmt: skip
+    for note in notes:
+        print(note)
     print(text)
     if args.json:
         text = json.dumps(payload, indent=2) + "\n"

@@ -57,6 +57,7 @@ def test_camera_convention_fields():
     # x_cam = -y, y_cam = -z of the bottom centre (z = 0), z_cam = x.
     assert (xc, yc, zc) == (-1.0, 0.0, 2.0)
     assert abs(kitti.wrap_angle(ry + math.pi)) < 1e-6  # -yaw - pi/2 = -pi (= pi)
+    assert -math.pi <= ry <= math.pi  # KITTI's range, after rounding to six decimals
 
 
 def test_points_round_trip_and_bad_size(tmp_path):

@@ -37,6 +37,8 @@ from PIL import Image
 from indoorbev_jax.config import DataConfig
 from indoorbev_jax.geometry import wrap_angle
 
+ROT_Y_LIMIT = 3.141592  # the largest six-decimal |rotation_y| inside [-pi, pi]
+
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 # PIL modes of integer single-channel images: 1-bit, 8-bit grey, palette, 16- and 32-bit grey.
 _ID_MODES = ("1", "L", "P", "I;16", "I;16B", "I;16L", "I")
@@ -181,6 +183,8 @@ def labels_to_lines(labels: ObjectLabels, class_names: tuple[str, ...]) -> list[
         length, width, height = (float(v) for v in labels.dims[k])
         x, y, z = (float(v) for v in labels.pos[k])
         rot_y = float(wrap_angle(-float(labels.yaw[k]) - math.pi / 2))
+        # Six decimals round +-pi to +-3.141593, outside KITTI's [-pi, pi].
+        rot_y = min(max(rot_y, -ROT_Y_LIMIT), ROT_Y_LIMIT)
         # Camera location of the bottom centre.
         cam = (-y, -(z - height / 2), x)
         fields = [
