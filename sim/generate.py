@@ -179,6 +179,25 @@ def simulate(
     geom_slot = jnp.asarray(tpl.geom_slot)
     point_slot = jnp.where(scan.geom_id >= 0, geom_slot[jnp.maximum(scan.geom_id, 0)], -1)
 
+    # Points: valid returns first, padded to N; of more than N, N spread over the scan order
+    # (a spinning pattern then loses density everywhere, not a sector).
+    r = valid.shape[1]
+    porder = front_order(valid)  # [B, R]
+    if r < n:
+        psel = jnp.concatenate([porder, jnp.full((porder.shape[0], n - r), r)], 1)
+    else:
+        psel = jnp.take_along_axis(porder, spread_positions(valid.sum(-1), n), 1)  # [B, N]
+
+    def ptake(x, fill):
+        x = jnp.concatenate([x, jnp.full_like(x[:, :1], fill)], 1)
+        return jnp.take_along_axis(x, psel.reshape(psel.shape + (1,) * (x.ndim - 2)), 1)
+
+    pvalid = ptake(valid, False)
+    # The returns kept, in ray order: labels count an object's points in the delivered cloud,
+    # so a cut cloud cannot leave a target with fewer than data.min_points.
+    kept = jnp.zeros((valid.shape[0], r + 1), bool)
+    kept = jax.vmap(lambda k, i, v: k.at[i].set(v))(kept, psel, pvalid)[:, :r]
+
     # Visibility: one ray per primitive, aimed at its centre; it sees the primitive only
     # where the sensor could fire it (field of view, min_range).
     target, _ = jax.vmap(functools.partial(labels_mod.visibility_targets, tpl))(scene, time)
@@ -190,7 +209,7 @@ def simulate(
     vis_slot = jnp.where(fired, geom_slot[jnp.maximum(vgeom, 0)], -1)
 
     per_slot = jax.vmap(functools.partial(labels_mod.object_labels, tpl, config=config))(
-        scene, time, origin, heading, point_slot, valid, vis_slot
+        scene, time, origin, heading, point_slot, kept, vis_slot
     )  # fields [B, S, ...]
 
     # Targets: labelled slots first (slot order kept), padded or cut to M.
@@ -217,20 +236,6 @@ def simulate(
         instance_ids=jax.vmap(instance_ids_from_masks)(masks, tvalid),
     )
 
-    # Points: valid returns first, padded to N; of more than N, N spread over the scan order
-    # (a spinning pattern then loses density everywhere, not a sector).
-    r = valid.shape[1]
-    porder = front_order(valid)  # [B, R]
-    if r < n:
-        psel = jnp.concatenate([porder, jnp.full((porder.shape[0], n - r), r)], 1)
-    else:
-        psel = jnp.take_along_axis(porder, spread_positions(valid.sum(-1), n), 1)  # [B, N]
-
-    def ptake(x, fill):
-        x = jnp.concatenate([x, jnp.full_like(x[:, :1], fill)], 1)
-        return jnp.take_along_axis(x, psel.reshape(psel.shape + (1,) * (x.ndim - 2)), 1)
-
-    pvalid = ptake(valid, False)
     points = jnp.where(pvalid[..., None], ptake(scan.points, 0.0), 0.0)
     # Slot -> target index, to say which target each point belongs to.
     target_of_slot = jnp.full((sel.shape[0], s + 1), -1, jnp.int32)
@@ -442,7 +447,8 @@ def reference_frame(
     drawn from ``rng``; labels derived with numpy (``reference_footprints``).
 
     Returns:
-      dict: points [R, 4], valid [R], geom_id [R], distance [R], point_slot [R], and per
+      dict: points [R, 4], valid [R] (the returns the cloud keeps), geom_id [R], distance [R],
+      point_slot [R], and per
       slot (S): masks [S, H, W], num_points, visibility, labelled, pos, dims, yaw.
     """
     sim, grid = config.sim, config.grid
@@ -464,6 +470,13 @@ def reference_frame(
     valid &= (xyz[:, 1] >= g.y_range[0]) & (xyz[:, 1] <= g.y_range[1])
     valid &= (xyz[:, 2] >= g.z_range[0]) & (xyz[:, 2] <= g.z_range[1])
     point_slot = np.where(hit, tpl.geom_slot[np.maximum(gid, 0)], -1)
+    # Of more than data.max_points returns, the evenly spread ones the cloud keeps.
+    kept = np.flatnonzero(valid)
+    n = config.data.max_points
+    if len(kept) > n:
+        kept = kept[np.arange(n, dtype=np.int64) * len(kept) // n]
+    valid = np.zeros_like(valid)
+    valid[kept] = True
     s = tpl.num_slots
     counts = np.bincount(point_slot[valid & (point_slot >= 0)], minlength=s)[:s]
     # Visibility rays at primitive centres.

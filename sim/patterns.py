@@ -21,6 +21,7 @@ Patterns:
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -94,10 +95,13 @@ class Mid360Pattern:
     elevation_cycles_per_frame: float = 161.80339887
 
     def __post_init__(self):
-        if self.points_per_second % (self.num_emitters * int(self.frame_rate)) != 0:
+        rays = self.points_per_second / self.frame_rate if self.frame_rate > 0 else math.nan
+        whole = math.isfinite(rays) and abs(rays - round(rays)) < 1e-9
+        if not (whole and round(rays) % self.num_emitters == 0):
             raise ValueError(
-                "Mid360Pattern.points_per_second must be divisible by "
-                "num_emitters * frame_rate so frames have a whole number of rays per emitter"
+                f"Mid360Pattern: points_per_second / frame_rate = {rays:g} rays a frame; "
+                f"expected a whole multiple of num_emitters ({self.num_emitters}) so every "
+                f"emitter fires a whole number of rays"
             )
         if not self.elevation_min_deg < self.elevation_max_deg:
             raise ValueError("Mid360Pattern.elevation_min_deg must be below elevation_max_deg")

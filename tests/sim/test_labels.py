@@ -120,6 +120,23 @@ def test_padding_instance_ids_and_filters(frames):
             np.testing.assert_array_equal(counts[t.valid[b]], info.num_points[b][t.valid[b]])
 
 
+def test_a_cut_cloud_counts_the_points_it_delivers():
+    """With more returns than data.max_points, labels count each object's points in the
+    delivered (cut) cloud, so no target has fewer than sim.min_points; they used to count
+    the uncut returns."""
+    cfg = dataclasses.replace(CFG, data=dataclasses.replace(CFG.data, max_points=256))
+    batch, info = jax.tree.map(np.asarray, generate.jitted_generate(cfg, "train", 2)(
+        jax.random.key(5)))  # fmt: skip
+    assert batch.point_valid.all()  # 2,048 rays, 256 slots: every frame is cut
+    t = batch.targets
+    assert t.valid.any()
+    assert (info.num_points[t.valid] >= cfg.sim.min_points).all()
+    for b in range(2):
+        owner = info.point_object[b]
+        counts = np.bincount(owner[owner >= 0], minlength=t.valid.shape[1])
+        np.testing.assert_array_equal(counts[t.valid[b]], info.num_points[b][t.valid[b]])
+
+
 @pytest.mark.parametrize(
     ("shape", "p_keep"),
     [((3, 20000), 0.7), ((2, 5, 33), 0.1), ((1, 1), 1.0), ((2, 64), 0.0), ((2, 0), 0.5)]

@@ -98,6 +98,14 @@ def test_grid_pattern_matches_numpy():
 def test_bad_patterns_raise_naming_the_field():
     with pytest.raises(ValueError, match="points_per_second"):
         patterns.Mid360Pattern(points_per_second=200_001)
+    # A fractional rate whose frames would have a fractional ray count (10.3 Hz: 19417.5)
+    # is refused; one with whole rays per emitter is taken, and its frames have them.
+    for rate in (10.3, 0.0):
+        with pytest.raises(ValueError, match="rays a frame"):
+            patterns.Mid360Pattern(frame_rate=rate)
+    for rate, pps in ((12.5, 200_000), (7.5, 150_000)):
+        pattern = patterns.Mid360Pattern(points_per_second=pps, frame_rate=rate)
+        assert pattern.frame(3).directions.shape == (pps / rate, 3) == (pattern.num_rays, 3)
     with pytest.raises(ValueError, match="elevations_deg"):
         patterns.SpinningPattern(())
     with pytest.raises(ValueError, match="azimuth_steps"):
