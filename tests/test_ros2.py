@@ -492,3 +492,18 @@ def test_console_scripts_exit_130_on_ctrl_c(monkeypatch, capsys):
     with pytest.raises(SystemExit) as done:  # other statuses exit normally
         cli.exit_with(lambda: 2, "indoorbev")
     assert done.value.code == 2 and exits == [130]
+
+
+def test_unknown_ros_args_fail_first_in_one_line(capsys):
+    """An argument after --ros-args that rclpy does not take is named before the model
+    loads (it used to end in rclpy's traceback after the warm-up, status 1)."""
+    pytest.importorskip("rclpy")
+    from indoorbev_jax import cli
+
+    argv = ["ros2", "detect", "--checkpoint", "no-such-model", "--ros-args", "--bogus"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "error: --ros-args: rclpy does not take ['--bogus']" in err and "model" not in err
+    from indoorbev_jax.ros2 import runtime
+
+    runtime.check_ros_args(["-r", "points:=/livox/lidar"])  # a remapping is taken

@@ -273,6 +273,7 @@ def run_detect_node(
 
     out_topics = check_settings(topic, out_ns, log_every, max_frames)
     runtime.require_rclpy()
+    runtime.check_ros_args(ros_args)
     if record:  # before the slow warm-up
         from indoorbev_jax.ros2.record import ensure_new
 

@@ -36,10 +36,29 @@ def start_node(name: str, ros_args: list[str] | None = None):
     if threading.current_thread() is threading.main_thread():
         # rclpy handles SIGINT; make SIGTERM (what process managers send) stop as cleanly.
         signal.signal(signal.SIGTERM, _interrupt)
+    context = _init_context(ros_args)
+    return context, rclpy.create_node(name, context=context)
+
+
+def check_ros_args(ros_args: list[str] | None) -> None:
+    """Raises ``ValueError`` naming the arguments after ``--ros-args`` that rclpy does not
+    take; run before a slow start (model load, warm-up) so a typo costs no wait."""
+    if ros_args:
+        _init_context(ros_args).try_shutdown()
+
+
+def _init_context(ros_args: list[str] | None):
+    rclpy = require_rclpy()
     context = rclpy.Context()
     args = ["indoorbev", "--ros-args", *ros_args] if ros_args else None
-    rclpy.init(args=args, context=context)
-    return context, rclpy.create_node(name, context=context)
+    try:
+        rclpy.init(args=args, context=context)
+    except RuntimeError as e:  # rclpy's UnknownROSArgsError
+        raise ValueError(
+            f"--ros-args: rclpy does not take {e}; expected remappings (from:=to), "
+            f"-p name:=value, --log-level LEVEL or other ROS 2 arguments"
+        ) from None
+    return context
 
 
 def _interrupt(signum, frame):
