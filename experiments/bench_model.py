@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import os
 import resource
 import statistics
@@ -250,6 +251,12 @@ def main(argv=None):
     if bad:
         ap.error(f"--xla-vs expects NAME=VALUE, got {bad[0]!r}")
 
+    peers = [] if a.only == "jax" or a.peer == "none" else a.peer.split(",")
+    # Refused before ours compiles (minutes for paper), not after.
+    if peers and a.preset == "tiny":
+        ap.error("the peer has no tiny preset; add --only jax")
+    if peers and importlib.util.find_spec("torch") is None:
+        ap.error("the PyTorch peer needs torch (pip install torch); or add --only jax")
     cfg = apply_overrides(Config.preset(a.preset), a.set)
     label = f"{a.preset} {a.mode} B={a.batch}" + (f" [{' '.join(a.set)}]" if a.set else "")
     runners = {}
@@ -284,10 +291,7 @@ def main(argv=None):
                 f"{label}: {name} XLA options {used or 'none'}, compile {compile_s:.1f} s, "
                 f"XLA memory {mem / 2**30:.2f} GiB"
             )
-    peers = [] if a.only == "jax" or a.peer == "none" else a.peer.split(",")
     for up_mode in peers:
-        if a.preset == "tiny":
-            raise SystemExit("the peer has no tiny preset")
         run, n, device = build_peer(a.preset, a.mode, a.batch, up_mode, a.bf16)
         runners[f"torch[{up_mode}]"] = run
         print(f"{label}: torch[{up_mode}] params {n / 1e6:.3f} M on {device}", flush=True)

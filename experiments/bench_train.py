@@ -43,7 +43,7 @@ def bench_preset(name: str, steps: int, batch_size: int | None, sweep_k: int) ->
     state = init_state(config, jax.random.key(0))
     step = jit_train_step(config, make_train_step(config))
     compile_s = _time(lambda: step.lower(state, batch, key, hyper).compile())
-    state, _ = step(state, batch, key, hyper)  # warm-up
+    state, _ = jax.block_until_ready(step(state, batch, key, hyper))  # warm-up, waited for
     times = []
     for _ in range(steps):
         t = _time(lambda: step(state, batch, key, hyper))
@@ -60,7 +60,7 @@ def bench_preset(name: str, steps: int, batch_size: int | None, sweep_k: int) ->
     states = init_sweep(config, sweep_k, jax.random.key(0))
     sweep = make_sweep_step(config)
     sweep_compile = _time(lambda: sweep.lower(states, batch, key, hypers).compile())
-    states, _ = sweep(states, batch, key, hypers)
+    states, _ = jax.block_until_ready(sweep(states, batch, key, hypers))
     vmapped, sequential = [], []
     for _ in range(steps):
         vmapped.append(_time(lambda: sweep(states, batch, key, hypers)))

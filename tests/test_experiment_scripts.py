@@ -175,6 +175,22 @@ def test_bench_model_names_an_xla_option_without_a_value(capsys):
     assert "--xla-vs expects NAME=VALUE, got ''" in capsys.readouterr().err
 
 
+def test_bench_model_refuses_a_peer_it_cannot_run_before_compiling(capsys, monkeypatch):
+    """The peer's preconditions (torch installed, a non-tiny preset) are checked before ours
+    compiles (minutes for paper); they used to fail after it, with a traceback for torch."""
+    bench = _script("bench_model")
+    monkeypatch.setattr(bench, "build_jax", lambda *a, **k: pytest.fail("compiled first"))
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(["--preset", "tiny"])
+    assert exit_info.value.code == 2
+    assert "the peer has no tiny preset; add --only jax" in capsys.readouterr().err
+    monkeypatch.setattr(bench.importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(["--preset", "small"])
+    assert exit_info.value.code == 2
+    assert "the PyTorch peer needs torch" in capsys.readouterr().err
+
+
 def test_bench_views_names_a_missing_model(tmp_path, capsys):
     bench = _script("bench_views")
     with pytest.raises(SystemExit) as exit_info:
