@@ -37,7 +37,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from indoorbev_jax.cli import check_seed, check_whole
+from indoorbev_jax.cli import check_folder, check_seed, check_whole
 from indoorbev_jax.config import Config, flatten_dict
 from indoorbev_jax.data import kitti
 from indoorbev_jax.rosbag import check_bag_target, markers_to_labels, typestore
@@ -127,17 +127,6 @@ def _check_meta(root: Path, meta: dict) -> None:
                 "this command to resume; use another --out"
             )
         kitti.atomic_write(path, lambda p: p.write_text(json.dumps(meta, indent=1)))
-
-
-def _check_folder(name: str, path: str | os.PathLike) -> Path:
-    """``path`` as a Path, unless it is empty (an unset shell variable would mean the current
-    folder) or an existing file."""
-    if str(path) == "":
-        raise ValueError(f"{name}: an empty path; expected a folder")
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise ExportError(f"{path}: is a file; {name} must be a folder")
-    return path
 
 
 def _check_bag_place(bag: Path, root: Path) -> None:
@@ -238,9 +227,9 @@ def export(
     is_number = isinstance(throttle, int | float) and not isinstance(throttle, bool)
     if not (is_number and math.isfinite(throttle) and throttle >= 0):
         raise ValueError(f"throttle: must be a number of seconds >= 0, got {throttle!r}")
-    root = _check_folder("out", out)
+    root = check_folder("out", out, ExportError)
     if rosbag is not None:  # write_bag runs last: refuse a bad target before hours of frames
-        _check_bag_place(_check_folder("rosbag", rosbag), root)
+        _check_bag_place(check_folder("rosbag", rosbag, ExportError), root)
         check_bag_target(rosbag, (POINTS_TOPIC, OBJECTS_TOPIC))
     _check_meta(root, {"seed": int(seed), "frames": int(frames), "config": config.to_dict()})
     _remove_stale_temporaries(root)

@@ -195,8 +195,11 @@ def simulate(
     pvalid = ptake(valid, False)
     # The returns kept, in ray order: labels count an object's points in the delivered cloud,
     # so a cut cloud cannot leave a target with fewer than data.min_points.
-    kept = jnp.zeros((valid.shape[0], r + 1), bool)
-    kept = jax.vmap(lambda k, i, v: k.at[i].set(v))(kept, psel, pvalid)[:, :r]
+    if r < n:  # nothing can be cut
+        kept = valid
+    else:
+        kept = jnp.zeros((valid.shape[0], r + 1), bool)
+        kept = jax.vmap(lambda k, i, v: k.at[i].set(v))(kept, psel, pvalid)[:, :r]
 
     # Visibility: one ray per primitive, aimed at its centre; it sees the primitive only
     # where the sensor could fire it (field of view, min_range).

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from indoorbev_jax.cli import check_folder
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
 from indoorbev_jax.viz import render_bev
@@ -22,11 +23,7 @@ def show(
     ids: list[str] | None = None,
 ) -> list[Path]:
     """Writes ``<out>/<id>.png`` for frames of the KITTI folder ``root`` (all by default)."""
-    if str(out) == "":
-        raise ValueError("out: an empty path; expected a folder for the pictures")
-    root, out = Path(root), Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: is a file; out must be a folder for the pictures")
+    root, out = Path(root), check_folder("out", out)
     ids = kitti.list_frames(root) if ids is None else ids
     out.mkdir(parents=True, exist_ok=True)
     written = []

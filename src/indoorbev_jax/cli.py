@@ -82,6 +82,17 @@ def check_seed(name: str, value) -> int:
     return value
 
 
+def check_folder(name: str, path, file_error: type[Exception] = ValueError) -> Path:
+    """``path`` as a Path, unless it is empty (an unset shell variable would mean the current
+    folder; a ValueError) or an existing file (``file_error``)."""
+    if str(path) == "":
+        raise ValueError(f"{name}: an empty path; expected a folder")
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise file_error(f"{path}: is a file; {name} must be a folder")
+    return path
+
+
 def check_positive(name: str, value, unit: str = "seconds") -> float:
     """``value`` if it is a finite number > 0 (not a bool), ``unit`` naming it in the message."""
     ok = isinstance(value, int | float) and not isinstance(value, bool)

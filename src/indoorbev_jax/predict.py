@@ -214,6 +214,10 @@ def _bag_frames(path: Path, topic: str | None) -> Iterator[Frame]:
         yield Frame(frame_id, c.points, c.log_ns, c.stamp_ns, c.frame_id or "lidar", c.error)
 
 
+def _is_bag_folder(path: Path) -> bool:
+    return path.is_dir() and (path / "metadata.yaml").exists()
+
+
 def open_input(path: str | os.PathLike, topic: str | None = None) -> tuple[int, Iterator[Frame]]:
     """(number of frames, an iterator of ``Frame``) over INPUT: a ``.bin`` file, a
     KITTI-style folder (``velodyne/*.bin``) or a ROS 2 bag folder. A frame that cannot be read
@@ -225,7 +229,7 @@ def open_input(path: str | os.PathLike, topic: str | None = None) -> tuple[int, 
     if storage_file and (path.parent / "metadata.yaml").exists():
         # One file of a bag may hold only part of it: read the whole bag.
         raise ValueError(f"{path}: a storage file of the bag {path.parent}; pass that folder")
-    is_bag = storage_file or (path.is_dir() and (path / "metadata.yaml").exists())
+    is_bag = storage_file or _is_bag_folder(path)
     if topic is not None and path.exists() and not is_bag:
         raise ValueError(f"{path}: --topic {topic} applies to ROS 2 bag input only")
     if path.is_file() and path.suffix.lower() == ".bin":
@@ -465,12 +469,11 @@ def predict(
     if bag_out is not None:
         from indoorbev_jax.rosbag import check_bag_target
 
-        bag = Path(bag_out).resolve()
-        for other, what in ((Path(input_path).resolve(), "INPUT"), (out.resolve(), "--out")):
+        bag, source = Path(bag_out).resolve(), Path(input_path).resolve()
+        for other, what in ((source, "INPUT"), (out.resolve(), "--out")):
             if bag == other or bag in other.parents:
                 raise ValueError(f"--bag-out {bag_out} would replace {what} {other}")
-        source = Path(input_path).resolve()
-        if source.is_dir() and (source / "metadata.yaml").exists() and source in bag.parents:
+        if _is_bag_folder(source) and source in bag.parents:
             raise ValueError(f"--bag-out {bag_out} lies inside the INPUT bag {source}")
         check_bag_target(bag_out, ("/points", "/detections"))
     run = {
