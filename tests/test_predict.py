@@ -568,6 +568,12 @@ def test_lone_storage_file_reads_as_its_bag(model_file, tmp_path):
     for k in range(2):
         name = f"label_2/{k:06d}.txt"
         assert (tmp_path / "a" / name).read_text() == (tmp_path / "b" / name).read_text()
+    # A lone file that is no bag is named, before any frame.
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file")
+    with pytest.raises(BagError, match=r"junk\.mcap: not a readable ROS 2 bag"):
+        P.predict(model_file, junk, tmp_path / "c", **run)
+    assert not (tmp_path / "c" / "label_2").exists()
 
 
 def test_topic_with_a_second_message_type_reads_its_clouds_only(tmp_path):
