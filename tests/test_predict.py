@@ -510,11 +510,33 @@ def test_input_errors_name_the_path_and_empty_clouds_are_said(model_file, tmp_pa
         P.predict(model_file, bag, tmp_path / "o", topic="/x", verbose=False)
     far = np.full((50, 4), 1e3, np.float32)
     far[:10] = np.nan
+    far[10:15] = 0.0  # a driver's "no return" points
     kitti.write_points(tmp_path / "far.bin", far)
     summary = P.predict(model_file, tmp_path / "far.bin", tmp_path / "o", pictures=False)
     assert summary["empty_frames"] == ["far"]
     printed = capsys.readouterr().out
-    assert "none of its 50 points is valid (10 non-finite, 40 outside the workspace x [" in printed
+    assert (
+        "none of its 50 points is valid (10 non-finite, 5 within sim.min_range=0.1 m of the "
+        "sensor, 35 outside the workspace x [" in printed
+    )
+
+
+def test_driver_no_return_points_leave_the_prediction_unchanged(model_file):
+    """Livox drivers write a pulse with no return as (0, 0, 0), inside the workspace; the
+    simulator never returns a point that close (sim.min_range), so such points are invalid
+    and the cloud is read as if they were not there."""
+    config, params = P.load_model(model_file)
+    predictor = P.Predictor(config, params)
+    scan = _scans(1)[0]
+    scan = scan[np.linalg.norm(scan[:, :3], axis=1) > 0.2]
+    with_zeros = np.insert(scan, np.arange(0, len(scan), 3), 0.0, axis=0)
+    with_zeros[0, :3] = (0.03, 0.04, 0.0)  # 5 cm: inside the 0.1 m blind zone too
+    padded, valid, counts = predictor.prepare(with_zeros)
+    assert counts["blind_points"] == len(with_zeros) - len(scan)
+    np.testing.assert_array_equal(padded[valid], scan)
+    final, output, _ = predictor.infer(padded, valid)
+    clean_final, clean_output, _ = predictor.infer(*predictor.prepare(scan)[:2])
+    jax.tree.map(np.testing.assert_array_equal, (final, output), (clean_final, clean_output))
 
 
 def test_auto_intensity_stays_livox_once_seen(model_file):

@@ -173,7 +173,7 @@ def dataset_check(args: argparse.Namespace) -> int:
         class_counts += np.bincount(t.classes[t.valid], minlength=config.num_classes)
         raw_points.append(stats.raw_points)
         valid_points.append(stats.valid_points)
-        invalid += stats.nonfinite_points + stats.outside_points
+        invalid += stats.invalid_points
         dropped_points += stats.dropped_points
         # Legal, so warned about rather than failed: a blocked sensor gives an empty cloud and
         # labels may reach past the grid; but points or labels in mm or in a map frame look so.
@@ -209,7 +209,10 @@ def dataset_check(args: argparse.Namespace) -> int:
             f"points per frame (valid): min {v.min()}  median {int(np.median(v))}  "
             f"mean {v.mean():.1f}  max {v.max()}  (raw total {sum(raw_points)})"
         )
-    print(f"invalid points (non-finite or outside the workspace): {invalid}")
+    print(
+        f"invalid points (non-finite, within sim.min_range={config.sim.min_range} m of the "
+        f"sensor, or outside the workspace): {invalid}"
+    )
     print(f"points beyond data.max_points={config.data.max_points}: {dropped_points}")
     if dropped_objects:
         print(f"objects beyond data.max_objects: {dropped_objects}")

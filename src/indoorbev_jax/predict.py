@@ -298,8 +298,9 @@ class Predictor:
 
     def prepare(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
         """A raw cloud as the model takes it: (points padded [N, 4] with intensity in [0, 1],
-        valid [N], ``pad_points``' counts of non-finite, out-of-workspace and dropped points
-        (past ``data.max_points``, thinned evenly)). Also kept as ``last_counts``, and the
+        valid [N], ``pad_points``' counts of non-finite, blind-zone (within
+        ``sim.min_range``), out-of-workspace and dropped points (past ``data.max_points``,
+        thinned evenly)). Also kept as ``last_counts``, and the
         intensity's factor as ``last_intensity_factor``."""
         cfg = self.config
         factor = intensity_factor(self.intensity, points)
@@ -307,7 +308,9 @@ class Predictor:
             self._auto_factor = factor = min(factor, self._auto_factor)
         self.last_intensity_factor = factor
         points = normalize_intensity(points, self.last_intensity_factor)
-        padded, valid, self.last_counts = pad_points(points, cfg.grid, cfg.data.max_points)
+        padded, valid, self.last_counts = pad_points(
+            points, cfg.grid, cfg.data.max_points, cfg.sim.min_range
+        )
         return padded, valid, self.last_counts
 
     def __call__(self, points: np.ndarray):
@@ -555,8 +558,10 @@ def predict(
             summary["empty_frames"].append(frame.frame_id)
             note += (
                 f"; warning: none of its {len(frame.points)} points is valid "
-                f"({counts['nonfinite_points']} non-finite, {counts['outside_points']} outside "
-                f"the workspace {workspace}): check the cloud's frame and units"
+                f"({counts['nonfinite_points']} non-finite, {counts['blind_points']} within "
+                f"sim.min_range={config.sim.min_range} m of the sensor, "
+                f"{counts['outside_points']} outside the workspace {workspace}): check the "
+                "cloud's frame and units"
             )
         done = summary["frames"] - summary["resumed_frames"]
         left = total - (summary["frames"] + len(summary["bad_frames"]))

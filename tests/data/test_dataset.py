@@ -8,7 +8,7 @@ import pytest
 from indoorbev_jax.cli import main as cli_main
 from indoorbev_jax.config import CLASS_NAMES, NUM_CLASSES, Config
 from indoorbev_jax.data import kitti
-from indoorbev_jax.data.dataset import KittiDataset, collate
+from indoorbev_jax.data.dataset import KittiDataset, collate, pad_points
 from indoorbev_jax.data.rasterize import rasterize_boxes
 
 CFG = Config.tiny()
@@ -58,6 +58,27 @@ def test_frames_are_padded_static_shape(tmp_path):
     ids, masks = rasterize_boxes(boxes, t.valid, CFG.grid)
     np.testing.assert_array_equal(t.masks, masks)
     np.testing.assert_array_equal(t.instance_ids, ids)
+
+
+def test_points_in_the_sensors_blind_zone_are_invalid_and_counted(tmp_path):
+    cfg = Config.tiny()
+    r = cfg.sim.min_range
+    pts = np.array(
+        [[0.0, 0.0, 0.0, 0.0],  # a driver's "no return" point
+         [0.03, 0.04, 0.0, 0.5],  # 5 cm from the sensor
+         [r, 0.0, 0.0, 0.5],  # on the blind zone's edge: a return the simulator can give
+         [0.0, -1.0, 0.5, 0.5],
+         [np.nan, 0.0, 0.0, 0.5],
+         [50.0, 0.0, 0.0, 0.5]], np.float32
+    )  # fmt: skip
+    kitti.write_frame(tmp_path, "a", pts, kitti.ObjectLabels.empty(), CLASS_NAMES)
+    item, stats = KittiDataset(tmp_path, None, cfg).load(0)
+    assert (stats.nonfinite_points, stats.blind_points, stats.outside_points) == (1, 2, 1)
+    assert stats.valid_points == 2 == item.point_valid.sum()
+    np.testing.assert_array_equal(item.points[item.point_valid], pts[2:4])
+    # min_range 0 (pad_points' default) keeps every finite point inside the workspace.
+    _, valid, counts = pad_points(pts, cfg.grid, cfg.data.max_points)
+    assert counts["blind_points"] == 0 and valid.sum() == 4
 
 
 def test_mask_file_gives_true_shape_and_empty_cloud_is_valid(tmp_path):
@@ -128,7 +149,10 @@ def test_dataset_check_cli(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "frames: 3 (0 unreadable)" in out
     assert "Table           2" in out and "Person          2" in out
-    assert "invalid points (non-finite or outside the workspace): 10" in out
+    assert (
+        "invalid points (non-finite, within sim.min_range=0.1 m of the sensor, or outside the "
+        "workspace): 10" in out
+    )
     (tmp_path / "label_2" / "000002.txt").write_text("Table 1 2\n")
     assert cli_main(["dataset", "check", str(tmp_path), "--preset", "tiny"]) == 1
     out = capsys.readouterr().out

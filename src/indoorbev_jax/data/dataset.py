@@ -7,8 +7,9 @@ items (numpy) with points ``[N_max, 4]`` + validity and targets padded to
 (``rasterize.py``).
 
 Rules for what does not fit:
-  * NaN/Inf points and points outside the workspace (``grid`` x/y/z ranges) are marked
-    invalid and counted, never an error;
+  * NaN/Inf points, points closer to the sensor than ``sim.min_range`` (its blind zone;
+    lidar drivers write (0, 0, 0) for a pulse with no return) and points outside the
+    workspace (``grid`` x/y/z ranges) are marked invalid and counted, never an error;
   * a frame with more valid points than ``data.max_points`` keeps ``max_points`` of them
     evenly spread over the scan order, so a spinning lidar's scan loses density everywhere
     instead of a whole sector (the excess is counted in ``FrameStats.dropped_points``);
@@ -43,29 +44,41 @@ class FrameStats:
     dropped_points: int
     objects: int
     dropped_objects: int
+    blind_points: int = 0
+
+    @property
+    def invalid_points(self) -> int:
+        """Non-finite, blind-zone and out-of-workspace points."""
+        return self.nonfinite_points + self.blind_points + self.outside_points
 
     @property
     def valid_points(self) -> int:
-        return self.raw_points - self.nonfinite_points - self.outside_points - self.dropped_points
+        return self.raw_points - self.invalid_points - self.dropped_points
 
 
 def pad_points(
-    points: np.ndarray, grid: GridConfig, max_points: int
+    points: np.ndarray, grid: GridConfig, max_points: int, min_range: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """Pads a raw cloud to ``[max_points, 4]`` with a validity mask.
 
-    Non-finite and out-of-workspace points are left out (counted). Of more than
-    ``max_points`` valid points, ``max_points`` evenly spaced in the input order are kept
-    (deterministic; the order is kept too): lidar drivers emit points by time or azimuth,
-    so keeping the first ones would cut whole sectors out of the scan.
+    Non-finite points, points closer to the origin (the sensor) than ``min_range`` and
+    out-of-workspace points are left out (counted). Callers pass ``sim.min_range``: the
+    simulated training scans have no return that close, and lidar drivers (Livox's among
+    them) write a pulse with no return as (0, 0, 0), which lies inside the workspace. Of
+    more than ``max_points`` valid points, ``max_points`` evenly spaced in the input order
+    are kept (deterministic; the order is kept too): lidar drivers emit points by time or
+    azimuth, so keeping the first ones would cut whole sectors out of the scan.
 
     Returns:
       points float32 [max_points, 4] (invalid rows zeroed), valid bool [max_points], and
-      counts of non-finite, out-of-workspace and dropped points.
+      counts of non-finite, blind-zone, out-of-workspace and dropped points.
     """
     points = np.asarray(points, np.float32).reshape(-1, 4)
     finite = np.isfinite(points).all(axis=1)
-    inside = finite & in_workspace(points, grid)
+    # float64 and a 1e-5 margin: a simulated return at exactly min_range stays valid.
+    radius = np.linalg.norm(points[:, :3].astype(np.float64), axis=1)
+    blind = finite & (radius < min_range * (1.0 - 1e-5))
+    inside = finite & ~blind & in_workspace(points, grid)
     keep = np.flatnonzero(inside)
     dropped = max(0, len(keep) - max_points)
     if dropped:
@@ -76,7 +89,8 @@ def pad_points(
     valid[: len(keep)] = True
     counts = {
         "nonfinite_points": int((~finite).sum()),
-        "outside_points": int((finite & ~inside).sum()),
+        "blind_points": int(blind.sum()),
+        "outside_points": int((finite & ~blind & ~inside).sum()),
         "dropped_points": dropped,
     }
     return out, valid, counts
@@ -198,7 +212,7 @@ class KittiDataset:
                 f"{paths['mask']}: instance id {ids.max()} but the label file has "
                 f"{len(labels)} objects"
             )
-        points, valid, counts = pad_points(raw, cfg.grid, cfg.data.max_points)
+        points, valid, counts = pad_points(raw, cfg.grid, cfg.data.max_points, cfg.sim.min_range)
         targets = make_targets(labels, cfg.grid, cfg.data.max_objects, ids)
         stats = FrameStats(
             frame_id=frame_id,

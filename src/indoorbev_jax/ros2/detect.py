@@ -108,7 +108,12 @@ class Detector:
         return self.process(self._dummy()).infer_ms
 
     def _dummy(self) -> bytes:
-        cloud = cloud_msg(self.ts, np.zeros((1, 4), np.float32), 0, "warmup")
+        # One valid point, so the model runs: three quarters along x, clear of the sensor's
+        # blind zone (sim.min_range), where (0, 0, 0) would be skipped.
+        g = self.config.grid
+        point = [g.x_range[0] + 0.75 * (g.x_range[1] - g.x_range[0]), sum(g.y_range) / 2,
+                 sum(g.z_range) / 2, 0.5]  # fmt: skip
+        cloud = cloud_msg(self.ts, np.asarray([point], np.float32), 0, "warmup")
         return bytes(self.ts.serialize_cdr(cloud, POINTCLOUD2))
 
     def process(self, raw: bytes) -> Result:
@@ -142,7 +147,8 @@ class Detector:
             return self._empty(stamp, frame, f"{source}: {notes[0]}; cloud skipped "
                                "(--skip-nonfinite processes the finite points)")  # fmt: skip
         if not valid.any():
-            why = "empty" if len(points) == 0 else "no finite point inside the grid"
+            why = "no valid point (finite, inside the grid, beyond sim.min_range)"
+            why = "empty" if len(points) == 0 else why
             return self._empty(stamp, frame, f"{source}: {why}; {len(points)} points")
         start = time.perf_counter()
         final, output, _ = self.predictor.infer(padded, valid)
