@@ -166,7 +166,7 @@ def bench_memory(layers: int, batch: int, q: int, m: int, grid: int, points: int
         print(f"  {name}: temporaries dense / sampled = {dense / max(sampled, 1e-9):.1f}x")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--batch", type=int, default=1, help="frames for the memory bench")
     parser.add_argument("--grid", type=int, default=500, help="H = W of the memory bench")
@@ -174,7 +174,12 @@ def main() -> None:
     parser.add_argument("--reps", type=int, default=3, help="timed runs of the memory bench")
     parser.add_argument("--match-reps", type=int, default=50)
     parser.add_argument("--skip-memory", action="store_true")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    if args.grid < 64:  # footprints reach 60 cells
+        parser.error(f"--grid must be at least 64 cells, got {args.grid}")
+    for flag in ("batch", "points", "reps", "match_reps"):
+        if getattr(args, flag) < 1:
+            parser.error(f"--{flag.replace('_', '-')} must be at least 1")
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}")
     bench_matching(16, 30, 30, args.match_reps)
     bench_matching(16, 30, 30, args.match_reps, all_valid=True)

@@ -135,7 +135,7 @@ def bench_evaluator(rng, frames, h, w, q, m, batch):
     return statistics.median(per_batch) / batch, t_compute / ev.num_frames, res
 
 
-def main():
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=1000)
     parser.add_argument("--distinct", type=int, default=20)
@@ -146,7 +146,13 @@ def main():
     parser.add_argument("--eval-frames", type=int, default=200)
     parser.add_argument("--eval-batch", type=int, default=4)
     parser.add_argument("--skip-pycocotools", action="store_true")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    if args.size < 64:  # footprints and blobs reach 60 cells
+        parser.error(f"--size must be at least 64 cells, got {args.size}")
+    for flag in ("frames", "distinct", "queries", "objects", "repeats", "eval_frames",
+                 "eval_batch"):  # fmt: skip
+        if getattr(args, flag) < 1:
+            parser.error(f"--{flag.replace('_', '-')} must be at least 1")
 
     rng = np.random.default_rng(0)
     h = w = args.size

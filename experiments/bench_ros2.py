@@ -118,6 +118,10 @@ def _phase(name, model, node, pub, received, clouds, rate, count) -> None:
     stamps = _run_phase(node, pub, received, clouds, rate, count)
     stats = _stop_detect(proc, lines)
     got = [s for s in stamps if s in received]
+    if len(got) < 2:  # no rate, no latency split to give
+        print(f"\n{name}: {count} clouds published at {rate:g} Hz; detections for {len(got)}, "
+              f"too few to measure (2 needed); node summary: {json.dumps(stats)}")  # fmt: skip
+        return
     e2e = [(received[s] - s) / 1e6 for s in got]
     span = (received[got[-1]] - received[got[0]]) / 1e9
     fps = (len(got) - 1) / span
@@ -139,7 +143,7 @@ def _phase(name, model, node, pub, received, clouds, rate, count) -> None:
     print(f"  node summary: {json.dumps(stats)}")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="small", choices=("tiny", "small", "paper"))
     parser.add_argument("--latency-rate", type=float, default=1.0)
@@ -148,7 +152,17 @@ def main() -> None:
     parser.add_argument("--max-rate", type=float, default=50.0, help="saturating rate (Hz)")
     parser.add_argument("--seconds", type=float, default=20.0, help="per throughput phase")
     parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    counts = {
+        "--latency-frames": args.latency_frames,
+        "--seconds x --rate": round(args.seconds * args.rate),
+        "--seconds x --max-rate": round(args.seconds * args.max_rate),
+    }
+    for flag, count in counts.items():
+        if count < 2:
+            parser.error(f"{flag} gives {count} clouds; a phase needs at least 2")
+    if min(args.latency_rate, args.rate, args.max_rate) <= 0:
+        parser.error("--latency-rate, --rate and --max-rate must be > 0")
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))

@@ -303,3 +303,38 @@ def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
     (t_val, f_val, n_val), (t_test, f_test, n_test) = draws["val"], draws["test"]
     assert not np.isin(t_val, t_test).any()
     assert f_val != f_test and not np.array_equal(n_val, n_test)
+
+
+@pytest.mark.parametrize(
+    ("script", "argv", "message"),
+    [
+        ("bench_metrics", ["--size", "60"], "--size must be at least 64 cells, got 60"),
+        ("bench_metrics", ["--repeats", "0"], "--repeats must be at least 1"),
+        ("bench_matching", ["--grid", "60"], "--grid must be at least 64 cells, got 60"),
+        ("bench_ros2", ["--latency-frames", "1"], "--latency-frames gives 1 clouds"),
+        ("bench_ros2", ["--seconds", "0.1"], "--seconds x --rate gives 1 clouds"),
+    ],
+)
+def test_benchmarks_refuse_sizes_they_cannot_run(script, argv, message, capsys):
+    """Sizes that used to end in a numpy traceback (footprints of up to 60 cells on a smaller
+    grid) or in a division by zero (one answered cloud) are one line, status 2."""
+    with pytest.raises(SystemExit) as exit_info:
+        _script(script).main(argv)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_bench_ros2_phase_with_one_answer_says_so(capsys, monkeypatch):
+    bench = _script("bench_ros2")
+    received = {}
+    monkeypatch.setattr(bench, "_start_detect", lambda model: (None, []))
+    monkeypatch.setattr(bench, "_stop_detect", lambda proc, lines: {"frames": 1})
+
+    def run_phase(node, pub, received, clouds, rate, count):
+        received[7] = 9  # one of the three stamps answered
+        return [5, 6, 7]
+
+    monkeypatch.setattr(bench, "_run_phase", run_phase)
+    bench._phase("latency", "m", None, None, received, [], 1.0, 3)
+    out = capsys.readouterr().out
+    assert "detections for 1, too few to measure (2 needed)" in out
