@@ -75,7 +75,7 @@ def main(argv=None) -> None:
             jax.tree.map(lambda x: x[None], output),
             jax.tree.map(lambda x, k=k: x[k : k + 1], batch.targets),
         )
-        labels, ids = to_labels(final, output)
+        labels, ids = to_labels(final, output, "mask", config.grid)
         truth = viz.render_bev(
             points, targets_to_labels(batch.targets, k), np.asarray(batch.targets.instance_ids[k]),
             config.grid, names, min_size=400,

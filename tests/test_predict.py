@@ -1,6 +1,7 @@
 """Predict path: model files, PointCloud2 of any layout, KITTI and bag inputs agree."""
 
 import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -305,6 +306,48 @@ def test_predictor_with_views_maps_features_and_segments_back(model_file, tmp_pa
     assert len(lines) == summary["objects"] > 0
     with pytest.raises(ValueError, match=r"inference\.views.*'flip'"):
         P.predict(model_file, tmp_path / "scan.bin", tmp_path / "o2", views=("flip",))
+
+
+def test_predict_boxes_come_from_the_masks_or_the_head(model_file, tmp_path, capsys):
+    """``--boxes mask`` (the default) writes the rectangles fitted to the output masks,
+    ``--boxes head`` the regressed boxes; z and height are the head's in both, and the
+    choice is part of the run (no resuming into another's outputs)."""
+    from indoorbev_jax.boxes import fit_box
+
+    config, params = P.load_model(model_file)
+    cloud = _scans(1, seed=9, points=800)[0]
+    _, _, final, output, _ = P.Predictor(config, params)(cloud)
+    queries = np.flatnonzero(output.segment_valid)
+    assert len(queries) > 0
+    kitti.write_points(tmp_path / "scan.bin", cloud)
+    written = {}
+    for boxes in ("mask", "head"):
+        out = tmp_path / boxes
+        argv = ["predict", str(model_file), str(tmp_path / "scan.bin"), "--out", str(out),
+                "--no-pictures"] + (["--boxes", "head"] if boxes == "head" else [])  # fmt: skip
+        assert cli_main(argv) == 0
+        written[boxes] = kitti.read_labels(out / "label_2" / "scan.txt", config.data)
+        assert json.loads((out / "predict.json").read_text())["boxes"] == boxes
+    fits = np.array([fit_box(output.det_masks[q], config.grid) for q in queries])
+    head = np.concatenate([final.pos[queries, :2], np.abs(final.dims[queries, :2]),
+                           final.yaw[queries]], 1)  # fmt: skip
+    for boxes, expected in (("mask", fits), ("head", head)):
+        got = written[boxes].boxes_bev()
+        np.testing.assert_allclose(got[:, :4], expected[:, :4], atol=2e-3)
+        turn = (got[:, 4] - expected[:, 4] + np.pi) % (2 * np.pi) - np.pi  # labels wrap yaw
+        np.testing.assert_allclose(turn, 0.0, atol=2e-3)
+        np.testing.assert_allclose(written[boxes].pos[:, 2], final.pos[queries, 2], atol=2e-3)
+        np.testing.assert_allclose(written[boxes].dims[:, 2], np.abs(final.dims[queries, 2]),
+                                   atol=2e-3)  # fmt: skip
+    capsys.readouterr()
+    with pytest.raises(ValueError, match=r"another run \(boxes: 'head' -> 'mask'"):
+        P.predict(model_file, tmp_path / "scan.bin", tmp_path / "head", verbose=False)
+    with pytest.raises(SystemExit) as exit_info:
+        cli_main(["predict", str(model_file), str(tmp_path / "scan.bin"), "--out",
+                  str(tmp_path / "x"), "--boxes", "fit"])  # fmt: skip
+    assert exit_info.value.code == 2 and "invalid choice: 'fit'" in capsys.readouterr().err
+    with pytest.raises(ValueError, match=r"boxes: expected one of \('head', 'mask'\)"):
+        P.predict(model_file, tmp_path / "scan.bin", tmp_path / "y", boxes="fit")
 
 
 # Bags, resuming and bad input -------------------------------------------------------------

@@ -111,7 +111,7 @@ def test_detector_matches_predictor(detector):
     result = detector.process(_raw_cloud(points))
     assert result.warning is None and result.infer_ms > 0
     _, _, final, output, _ = detector.predictor(points)
-    labels, ids = P.to_labels(final, output)
+    labels, ids = P.to_labels(final, output, "mask", detector.config.grid)  # the default
     assert len(labels) > 0
     msgs = _decode(result)
     for m in (msgs["detections"], msgs["occupancy"], *msgs["markers"].markers):
@@ -119,6 +119,8 @@ def test_detector_matches_predictor(detector):
     got = M.detections_to_labels(msgs["detections"])
     np.testing.assert_array_equal(got.classes, labels.classes)
     np.testing.assert_array_equal(got.pos, labels.pos)
+    np.testing.assert_array_equal(got.dims, labels.dims)
+    np.testing.assert_array_equal(got.yaw, labels.yaw)
     np.testing.assert_array_equal(M.occupancy_to_array(msgs["occupancy"]) == 100, ids > 0)
     assert len(msgs["markers"].markers) == 1 + 2 * len(labels)
 

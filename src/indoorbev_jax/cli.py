@@ -143,6 +143,18 @@ def add_views_argument(parser: argparse.ArgumentParser, default_help: str) -> No
     )
 
 
+def add_boxes_argument(parser: argparse.ArgumentParser) -> None:
+    """``--boxes``: where the output boxes come from (``predict.to_labels``)."""
+    parser.add_argument(
+        "--boxes",
+        default="mask",
+        choices=("mask", "head"),
+        help="'mask': x, y, length, width and yaw of the rectangle covering each object's "
+        "mask (default; several times closer to the true box on the simulated test set), "
+        "'head': the regressed box; z and height come from the head either way",
+    )
+
+
 def dataset_check(args: argparse.Namespace) -> int:
     """Validates every frame of a dataset folder; prints statistics and the first problems."""
     from indoorbev_jax.config import ConfigError
@@ -267,6 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_intensity(pred)
     add_views_argument(pred, "the model file's")
+    add_boxes_argument(pred)
     pred.set_defaults(func=run_predict)
 
     ros2 = commands.add_parser("ros2", help="live ROS 2 nodes (pip install -e .[ros])")
@@ -297,6 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_intensity(det)
     add_views_argument(det, "the model file's")
+    add_boxes_argument(det)
     det.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
                      help="the rest goes to rclpy (remappings, log levels)")  # fmt: skip
     det.set_defaults(func=run_ros2_detect)
@@ -322,6 +336,7 @@ def run_ros2_detect(args: argparse.Namespace) -> int:
             skip_nonfinite=args.skip_nonfinite,
             intensity=args.intensity,
             views=args.views,
+            boxes=args.boxes,
         )
     except (RosUnavailable, OSError, ValueError) as e:
         print(f"indoorbev ros2 detect: error: {e}", file=sys.stderr)
@@ -347,6 +362,7 @@ def run_predict(args: argparse.Namespace) -> int:
             views=args.views,
             skip_bad_frames=args.skip_bad_frames,
             overwrite=args.overwrite,
+            boxes=args.boxes,
         )
     except (OSError, ValueError) as e:  # bad model file, input or bag (rosbag.BagError)
         print(f"indoorbev predict: error: {e}", file=sys.stderr)

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from indoorbev_jax.boxes import BOX_SOURCES
 from indoorbev_jax.data import kitti
 from indoorbev_jax.predict import Predictor, load_model, to_labels, with_thresholds
 from indoorbev_jax.ros2 import messages as M
@@ -89,8 +90,14 @@ class Detector:
     the clouds' intensity (``predict.intensity_factor``).
     """
 
-    def __init__(self, config, params, ts=None, skip_nonfinite: bool = False, intensity="auto"):
+    def __init__(
+        self, config, params, ts=None, skip_nonfinite: bool = False, intensity="auto",
+        boxes: str = "mask",
+    ):  # fmt: skip
+        if boxes not in BOX_SOURCES:
+            raise ValueError(f"boxes: expected one of {BOX_SOURCES}, got {boxes!r}")
         self.config = config
+        self.boxes = boxes
         self.skip_nonfinite = skip_nonfinite
         self.ts = ts if ts is not None else default_typestore()
         self.names = config.data.class_names
@@ -153,7 +160,7 @@ class Detector:
         start = time.perf_counter()
         final, output, _ = self.predictor.infer(padded, valid)
         infer_ms = 1e3 * (time.perf_counter() - start)
-        labels, ids = to_labels(final, output)
+        labels, ids = to_labels(final, output, self.boxes, self.config.grid)
         warning = f"{source}: {'; '.join(notes)} (those points are skipped)" if notes else None
         return Result(stamp, frame, self._serialize(labels, ids > 0, stamp, frame),
                       labels, warning, infer_ms)  # fmt: skip
@@ -253,6 +260,7 @@ def run_detect_node(
     skip_nonfinite: bool = False,
     intensity: str | float = "auto",
     views: tuple[str, ...] | None = None,
+    boxes: str = "mask",
 ) -> dict:
     """Runs the detect node until Ctrl-C / SIGTERM (or ``max_frames`` processed frames).
 
@@ -271,6 +279,8 @@ def run_detect_node(
         (default: warn and publish empty outputs for such a cloud).
       intensity: units of the clouds' intensity (``predict.intensity_factor``).
       views: test-time views (``config.VIEWS``; None: the model file's ``inference.views``).
+      boxes: ``"mask"`` (boxes fitted to the masks) or ``"head"`` (regressed), as for
+        ``predict.to_labels``.
 
     Returns:
       the statistics of ``_Stats.summary`` (counts and latency percentiles).
@@ -286,7 +296,9 @@ def run_detect_node(
         ensure_new(record)
     config, params = load_model(checkpoint)
     config = with_thresholds(config, views=views)
-    detector = Detector(config, params, skip_nonfinite=skip_nonfinite, intensity=intensity)
+    detector = Detector(
+        config, params, skip_nonfinite=skip_nonfinite, intensity=intensity, boxes=boxes
+    )
     compile_s = detector.warmup()
     hint = speed_hint(detector.inference_ms(), config.inference.views)
     if hint:

@@ -1,0 +1,134 @@
+"""Boxes fitted to masks: known values, a brute-force re-derivation, and the rasteriser's boxes
+recovered; ``to_labels`` takes them (or the head's) into the label lines."""
+
+import types
+
+import numpy as np
+import pytest
+from shapely.geometry import Polygon
+
+from indoorbev_jax.boxes import HEADINGS, fit_box
+from indoorbev_jax.config import GridConfig
+from indoorbev_jax.data.rasterize import rasterize_boxes
+from indoorbev_jax.predict import to_labels
+
+GRID = GridConfig(x_range=(-2.0, 2.0), y_range=(-1.5, 1.5), cell_size=0.05)  # 60 x 80
+
+
+def _polygon(x, y, length, width, yaw):
+    c, s = np.cos(yaw), np.sin(yaw)
+    corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * [length / 2, width / 2]
+    return Polygon(corners @ np.array([[c, s], [-s, c]]) + [x, y])
+
+
+def _brute_force(mask, grid, headings=HEADINGS):
+    """Every corner of every cell, every heading: the smallest area and its box."""
+    rows, cols = np.nonzero(mask)
+    v = grid.cell_size
+    x0, y0 = grid.x_range[0] + cols * v, grid.y_range[0] + rows * v
+    corners = np.concatenate([np.stack([x0 + dx, y0 + dy], 1) for dx in (0, v) for dy in (0, v)])
+    best = None
+    for k in range(headings):
+        t = k * np.pi / 2 / headings
+        u = corners @ [np.cos(t), np.sin(t)]
+        w = corners @ [-np.sin(t), np.cos(t)]
+        area = np.ptp(u) * np.ptp(w)
+        if best is None or area < best[0]:
+            best = (area, k)
+    return best
+
+
+def test_axis_aligned_cells_give_their_rectangle():
+    mask = np.zeros(GRID.shape, bool)
+    mask[10:15, 20:40] = True  # rows 10-14 (y), columns 20-39 (x)
+    x, y, length, width, yaw = fit_box(mask, GRID)
+    assert (length, width, yaw) == pytest.approx((1.0, 0.25, 0.0), abs=1e-9)
+    assert (x, y) == pytest.approx((-2.0 + 30 * 0.05, -1.5 + 12.5 * 0.05), abs=1e-9)
+    # Taller than wide: length stays the longer side, the heading turns by 90 degrees.
+    tall = np.zeros(GRID.shape, bool)
+    tall[10:30, 20:25] = True
+    x, y, length, width, yaw = fit_box(tall, GRID)
+    assert (length, width, yaw) == pytest.approx((1.0, 0.25, np.pi / 2), abs=1e-9)
+    assert (x, y) == pytest.approx((-2.0 + 22.5 * 0.05, -1.5 + 20 * 0.05), abs=1e-9)
+    with pytest.raises(ValueError, match="no cell set"):
+        fit_box(np.zeros(GRID.shape, bool), GRID)
+    with pytest.raises(ValueError, match=r"expected shape \(60, 80\)"):
+        fit_box(mask[:5], GRID)
+
+
+def test_rasterised_boxes_are_recovered_and_equal_the_brute_force():
+    rng = np.random.default_rng(0)
+    n = 40
+    boxes = np.stack(
+        [rng.uniform(-1.2, 1.2, n), rng.uniform(-0.8, 0.8, n), rng.uniform(0.3, 1.2, n),
+         rng.uniform(0.2, 0.6, n), rng.uniform(-np.pi, np.pi, n)], 1
+    ).astype(np.float32)  # fmt: skip
+    _, masks = rasterize_boxes(boxes, np.ones(n, bool), GRID)
+    ious = []
+    for box, mask in zip(boxes, np.asarray(masks), strict=True):
+        fit = fit_box(mask, GRID)
+        area, k = _brute_force(mask, GRID)
+        # Only boundary cells are searched: the same heading and area as every cell's corners.
+        assert fit[2] * fit[3] == pytest.approx(area, rel=1e-9)
+        assert fit[4] % (np.pi / 2) == pytest.approx(k * np.pi / 2 / HEADINGS, abs=1e-9)
+        # The rectangle covers every cell of the mask, whole.
+        cells = _polygon(*fit).buffer(1e-9)
+        rows, cols = np.nonzero(mask)
+        for i, j in zip(rows, cols, strict=True):
+            x0, y0 = GRID.x_range[0] + j * GRID.cell_size, GRID.y_range[0] + i * GRID.cell_size
+            square = Polygon([(x0, y0), (x0 + 0.05, y0), (x0 + 0.05, y0 + 0.05), (x0, y0 + 0.05)])
+            assert cells.covers(square)
+        true = _polygon(*box)
+        ious.append(true.intersection(_polygon(*fit)).area / true.union(_polygon(*fit)).area)
+        assert np.hypot(*(fit[:2] - box[:2])) < 2 * GRID.cell_size
+    assert min(ious) > 0.6 and np.median(ious) > 0.75
+
+
+def test_long_box_heading_is_found_to_a_degree():
+    grid = GridConfig(x_range=(-2.0, 2.0), y_range=(-2.0, 2.0), cell_size=0.02)
+    for yaw in (0.1, 0.5, 1.2, 2.0, -2.8):
+        box = np.array([[0.3, -0.2, 2.0, 0.6, yaw]], np.float32)
+        _, masks = rasterize_boxes(box, np.ones(1, bool), grid)
+        x, y, length, width, fit_yaw = fit_box(np.asarray(masks)[0], grid)
+        turn = (fit_yaw - yaw + np.pi / 2) % np.pi - np.pi / 2  # headings modulo 180 degrees
+        assert abs(np.degrees(turn)) <= 1.0
+        assert (length, width) == pytest.approx((2.0, 0.6), abs=2 * grid.cell_size)
+        assert (x, y) == pytest.approx((0.3, -0.2), abs=grid.cell_size)
+
+
+def test_to_labels_takes_the_fitted_or_the_regressed_box():
+    q = 3
+    det_masks = np.zeros((q, *GRID.shape), bool)
+    det_masks[0, 10:15, 20:40] = True
+    det_masks[2, 30:50, 50:54] = True
+    panoptic = np.zeros(GRID.shape, np.int32)
+    panoptic[det_masks[0]], panoptic[det_masks[2]] = 1, 3  # id q + 1
+    output = types.SimpleNamespace(
+        segment_valid=np.array([True, False, True]),
+        det_classes=np.array([1, 2, 3]),
+        det_scores=np.array([0.9, 0.8, 0.7], np.float32),
+        det_masks=det_masks,
+        instance_ids=panoptic,
+    )
+    final = types.SimpleNamespace(
+        dims=np.array([[-0.5, 0.4, 1.1], [1, 1, 1], [0.3, 0.2, 0.9]], np.float32),
+        pos=np.array([[0.1, 0.2, 0.3], [0, 0, 0], [-0.4, 0.5, 0.6]], np.float32),
+        yaw=np.array([[4.0], [0.0], [-3.5]], np.float32),
+    )
+    head, _ = to_labels(final, output)
+    np.testing.assert_allclose(head.dims, np.abs(final.dims[[0, 2]]))
+    np.testing.assert_allclose(head.pos, final.pos[[0, 2]])
+    np.testing.assert_allclose(head.yaw, [4.0 - 2 * np.pi, -3.5 + 2 * np.pi], rtol=1e-6)
+    mask, _ = to_labels(final, output, "mask", GRID)
+    for k, query in enumerate((0, 2)):
+        fit = fit_box(det_masks[query], GRID)
+        np.testing.assert_allclose(mask.boxes_bev()[k], fit, atol=1e-6)
+        # z and height stay the head's: a BEV mask does not see them.
+        assert mask.pos[k, 2] == final.pos[query, 2] and mask.dims[k, 2] == final.dims[query, 2]
+    np.testing.assert_array_equal(mask.classes, [1, 3])
+    _, ids = to_labels(final, output, "mask", GRID)
+    np.testing.assert_array_equal(ids, np.where(panoptic == 3, 2, panoptic))  # line k: id k + 1
+    with pytest.raises(ValueError, match='boxes="mask" needs the grid'):
+        to_labels(final, output, "mask")
+    with pytest.raises(ValueError, match=r"boxes: expected one of \('head', 'mask'\)"):
+        to_labels(final, output, "masks", GRID)
