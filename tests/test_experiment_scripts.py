@@ -338,3 +338,41 @@ def test_bench_ros2_phase_with_one_answer_says_so(capsys, monkeypatch):
     bench._phase("latency", "m", None, None, received, [], 1.0, 3)
     out = capsys.readouterr().out
     assert "detections for 1, too few to measure (2 needed)" in out
+
+
+def test_pose_errors_of_the_true_boxes_are_zero_and_pairs_are_by_mask():
+    """pose_errors.frame_errors on outputs that are the targets themselves (masks from the
+    rasteriser, boxes equal): zero regressed errors, unit IoU, and the fitted box close."""
+    import types
+
+    import numpy as np
+
+    from indoorbev_jax.config import GridConfig
+    from indoorbev_jax.data.rasterize import rasterize_boxes
+
+    pose = _script("pose_errors")
+    grid = GridConfig(x_range=(-2.0, 2.0), y_range=(-2.0, 2.0), cell_size=0.05)
+    boxes = np.array([[0.5, 0.5, 1.0, 0.4, 0.3], [-1.0, -0.5, 0.6, 0.5, -1.0]], np.float32)
+    _, masks = rasterize_boxes(boxes, np.ones(2, bool), grid)
+    masks = np.asarray(masks)
+    pos = np.array([[0.5, 0.5, 0.4], [-1.0, -0.5, 0.3]], np.float32)
+    dims = np.array([[1.0, 0.4, 0.8], [0.6, 0.5, 1.0]], np.float32)
+    yaw = boxes[:, 4]
+    targets = types.SimpleNamespace(valid=np.array([True, True, False]),
+                                    classes=np.array([0, 3, 9]), pos=np.r_[pos, pos[:1]],
+                                    dims=np.r_[dims, dims[:1]], yaw=np.r_[yaw, yaw[:1]],
+                                    masks=np.r_[masks, masks[:1]])  # fmt: skip
+    # Queries in the other order, plus one whose class differs from its object's.
+    output = types.SimpleNamespace(segment_valid=np.array([True, True, True]),
+                                   det_classes=np.array([3, 0, 5]),
+                                   det_masks=masks[[1, 0, 0]])  # fmt: skip
+    final = types.SimpleNamespace(pos=pos[[1, 0, 0]], dims=dims[[1, 0, 0]],
+                                  yaw=yaw[[1, 0, 0], None])  # fmt: skip
+    errors = pose.frame_errors(final, output, targets, grid, 0.5)
+    np.testing.assert_array_equal(np.sort(errors["class"]), [0, 3])
+    for key in ("centre", "size", "z", "yaw"):
+        np.testing.assert_allclose(errors[key], 0.0, atol=1e-4)
+    np.testing.assert_allclose(errors["IoU"], 1.0, atol=1e-5)
+    assert (errors["fit c."] < 0.05).all() and (errors["fit IoU"] > 0.7).all()
+    table = pose.summary(errors, ["a", "b", "c", "d"])
+    assert table["all"]["matched"] == 2 and table["a"]["matched"] == 1 and "b" not in table
