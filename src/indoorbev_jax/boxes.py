@@ -46,9 +46,12 @@ def fit_box(mask: np.ndarray, grid: GridConfig, headings: int = HEADINGS) -> np.
     mask = np.asarray(mask, bool)
     if mask.shape != grid.shape:
         raise ValueError(f"mask: expected shape {grid.shape} (the grid), got {mask.shape}")
-    rows, cols = np.nonzero(boundary_cells(mask))
-    if rows.size == 0:
+    in_rows, in_cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if in_rows.size == 0:
         raise ValueError("mask: no cell set; an empty mask has no box")
+    r0, c0 = in_rows[0], in_cols[0]  # the object's bounding cells only: 500 x 500 grids
+    rows, cols = np.nonzero(boundary_cells(mask[r0 : in_rows[-1] + 1, c0 : in_cols[-1] + 1]))
+    rows, cols = rows + r0, cols + c0
     v = grid.cell_size
     centres = np.stack(
         [grid.x_range[0] + (cols + 0.5) * v, grid.y_range[0] + (rows + 0.5) * v], axis=1
