@@ -187,14 +187,20 @@ def sweep_table(rows: list[tuple[InferenceConfig, dict]]) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_frame_set_arguments(p: argparse.ArgumentParser) -> None:
+    """``--model`` and the simulated frames to score it on: ``--split``, ``--frames``,
+    ``--batch``, ``--seed`` (shared with ``pose_errors.py``, so both see the same frames)."""
     p.add_argument("--model", required=True, help="run directory or exported model file")
     p.add_argument("--split", default="test", choices=("test", "val"))
     p.add_argument("--frames", type=int, default=512)
     p.add_argument("--batch", type=int, default=8)
     seeds = f"{TEST_SEED} for test, {VAL_SEED} for val"
     p.add_argument("--seed", type=int, default=None, help=f"root seed (default: {seeds})")
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_frame_set_arguments(p)
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument(
         "--score-threshold",

@@ -35,7 +35,7 @@ import jax
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from eval_sim import default_seed  # noqa: E402
+from eval_sim import add_frame_set_arguments, default_seed  # noqa: E402
 
 from indoorbev_jax.boxes import fit_box  # noqa: E402
 from indoorbev_jax.cli import add_views_argument  # noqa: E402
@@ -191,11 +191,7 @@ def format_summary(table: dict) -> str:
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--model", required=True, help="run directory or exported model file")
-    p.add_argument("--split", default="test", choices=("test", "val"))
-    p.add_argument("--frames", type=int, default=512)
-    p.add_argument("--batch", type=int, default=8)
-    p.add_argument("--seed", type=int, default=None, help="root seed (default: eval_sim's)")
+    add_frame_set_arguments(p)
     p.add_argument("--match-iou", type=float, default=0.5, help="mask IoU a pair exceeds")
     p.add_argument("--json", default=None, help="write the medians here")
     add_views_argument(p, "the model's")

@@ -16,6 +16,7 @@ Example:
 
 from __future__ import annotations
 
+import atexit
 import functools
 import os
 import sys
@@ -351,8 +352,26 @@ def _kernels(name: str):
 
 
 @functools.cache
+def _wait_at_exit() -> None:
+    """Registers, once, an exit hook that waits for the device work still running.
+
+    Warp's casts run as Python host functions inside XLA programs. A script that ends while
+    one is queued (it read only ``.shape`` of a batch) hung for good: Python's shutdown
+    waits for XLA's worker thread, which waits for the interpreter lock to run the cast."""
+
+    def wait() -> None:
+        try:
+            jax.block_until_ready(jax.live_arrays())
+        except Exception:  # noqa: BLE001 - at exit there is no one left to tell
+            pass
+
+    atexit.register(wait)
+
+
+@functools.cache
 def _ffi(name: str):
     """One Warp launch per call (CUDA, or a CPU caster told to use one thread)."""
+    _wait_at_exit()
     kernel, nout, _, _ = _kernels(name)
     return _warp()[0].jax_kernel(kernel, num_outputs=nout)
 
@@ -360,6 +379,7 @@ def _ffi(name: str):
 @functools.cache
 def _ffi_threads(name: str):
     """The launch shared over CPU threads (``_lidar_kernels.launch_split``)."""
+    _wait_at_exit()
     kernel, nout, split, cost = _kernels(name)
     wp, K = _warp()
     return wp.jax_callable(

@@ -1,5 +1,7 @@
 """cast_rays against MuJoCo's own C mj_ray on random scenes with every primitive type."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -434,3 +436,33 @@ def test_degenerate_directions_miss_and_one_scene_takes_ray_sets(method):
     two = jax.tree.map(lambda x: jnp.stack([x, x]), dx)
     with pytest.raises(ValueError, match=r"one ray set per scene \(2 here\), got \(3, 50, 3\)"):
         lidar.cast_rays(mx, two, origins[:2], sets, MAX_RANGE, method=method)
+
+
+README_SNIPPET = """
+import os
+
+import jax
+from indoorbev_jax.config import Config
+from indoorbev_sim import generate_batch
+
+batch = jax.jit(generate_batch, static_argnums=(1,))(jax.random.key(0), Config.small())
+print(batch.points.shape, batch.targets.masks.shape)
+"""
+
+
+@pytest.mark.skipif(not lidar.warp_available(), reason="the hang needs Warp's host casts")
+def test_a_script_that_reads_only_shapes_exits():
+    """README's snippet reads only the shapes, so the batch is still being cast when Python
+    shuts down; Warp's casts need the interpreter lock, and the script used to hang for good
+    (3 of 3 runs on the 2-core VM). ``lidar`` now waits for live arrays at exit."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "INDOORBEV_LIDAR_METHOD"}
+    try:
+        proc = subprocess.run([sys.executable, "-c", README_SNIPPET], env=env, timeout=300,
+                              capture_output=True, text=True)  # fmt: skip
+    except subprocess.TimeoutExpired:
+        pytest.fail("the script did not exit within 300 s")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "(4, 24576, 4) (4, 30, 100, 100)" in proc.stdout
