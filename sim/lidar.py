@@ -357,11 +357,17 @@ def _wait_at_exit() -> None:
 
     Warp's casts run as Python host functions inside XLA programs. A script that ends while
     one is queued (it read only ``.shape`` of a batch) hung for good: Python's shutdown
-    waits for XLA's worker thread, which waits for the interpreter lock to run the cast."""
+    waits for XLA's worker thread, which waits for the interpreter lock to run the cast.
+    The hook blocks on the live arrays, then on one trivial program per device: a device
+    runs its programs in order (JAX's runtime tokens rely on it), so that also waits for
+    programs whose results were dropped."""
 
     def wait() -> None:
         try:
             jax.block_until_ready(jax.live_arrays())
+            step = jax.jit(lambda x: x + 1)
+            for device in jax.local_devices():
+                step(jax.device_put(np.int32(0), device)).block_until_ready()
         except Exception:  # noqa: BLE001 - at exit there is no one left to tell
             pass
 
