@@ -8,8 +8,9 @@ footprint mask overlaps its binarised mask at IoU > ``--match-iou`` (unique, lik
 matching), and prints per class the medians of:
 
   * ``centre``: BEV distance from the regressed box centre to the true one (m), and
-    ``fit c.`` from the centre of the rectangle that covers the output's mask
-    (``boxes.fit_box``, what ``--boxes mask`` outputs); ``gt c.`` is the true footprint's
+    ``fit c.`` from the centre of the rectangle around the largest piece of the output's
+    segment (``boxes.segment_boxes``, what ``--boxes mask`` outputs); ``gt c.`` is the
+    true footprint's
     centroid's distance from the true centre, not zero where a shape is not its box (an
     L-shaped sofa) or the grid edge cuts it;
   * ``IoU``, ``fit IoU``: rotated-box IoU in the ground plane (shapely) of the regressed
@@ -17,8 +18,12 @@ matching), and prints per class the medians of:
   * ``yaw``, ``fit yaw``: the angle between the box's sides and the true box's, in degrees
     (modulo 90: a fitted rectangle has no front, and a table's front and side are alike to
     a mask); uniform guessing would give a median of 22.5;
-  * ``size``: mean absolute error of the regressed length, width, height, ``z``: of the
-    regressed centre height (m); the fitted box keeps both from the head.
+  * ``size``, ``fit size``: mean absolute error of length and width (m) of the regressed
+    and of the fitted box (the longer side against the true box's longer side), ``h``: of
+    the regressed height, ``z``: of the regressed centre height; the fitted box keeps h and
+    z from the head.
+
+A last row, ``all p90``, gives the 90th percentiles over every matched object.
 
 The numbers are measured on simulated data, like every figure of ``eval_sim.py``.
 """
@@ -37,13 +42,25 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_sim import add_frame_set_arguments, default_seed  # noqa: E402
 
-from indoorbev_jax.boxes import fit_box  # noqa: E402
+from indoorbev_jax.boxes import fit_box, segment_boxes  # noqa: E402
 from indoorbev_jax.cli import add_views_argument  # noqa: E402
 from indoorbev_jax.config import ConfigError  # noqa: E402
 from indoorbev_jax.geometry import wrap_angle  # noqa: E402
 from indoorbev_jax.predict import load_model  # noqa: E402
 
-COLUMNS = ("centre", "fit c.", "gt c.", "IoU", "fit IoU", "yaw", "fit yaw", "size", "z")
+COLUMNS = (
+    "centre",
+    "fit c.",
+    "gt c.",
+    "IoU",
+    "fit IoU",
+    "yaw",
+    "fit yaw",
+    "size",
+    "fit size",
+    "h",
+    "z",
+)
 
 
 def box_polygon(x: float, y: float, length: float, width: float, yaw: float):
@@ -97,7 +114,9 @@ def match_frame(det_masks, det_classes, gt_masks, gt_classes, match_iou: float):
     return pairs[:, 0], pairs[:, 1]
 
 
-def frame_errors(final, output, targets, grid, match_iou: float) -> dict[str, np.ndarray]:
+def frame_errors(
+    final, output, targets, grid, match_iou: float, fit_to: str = "segment"
+) -> dict[str, np.ndarray]:
     """Per matched object of one frame (numpy, batch axis removed): its class and errors."""
     keep = np.flatnonzero(output.segment_valid)
     valid = np.flatnonzero(targets.valid)
@@ -109,7 +128,10 @@ def frame_errors(final, output, targets, grid, match_iou: float) -> dict[str, np
     q, t = keep[d], valid[g]
     pos, dims, yaw = final.pos[q], np.abs(final.dims[q]), final.yaw[q, 0]
     gpos, gdims, gyaw = targets.pos[t], targets.dims[t], targets.yaw[t]
-    fits = np.array([fit_box(m, grid) for m in det_masks[d]]).reshape(-1, 5)
+    if fit_to == "segment":  # what --boxes mask writes
+        fits = segment_boxes(output.instance_ids, q + 1, grid)
+    else:  # the whole binarised mask, specks and all
+        fits = np.array([fit_box(m, grid) for m in output.det_masks[q]]).reshape(-1, 5)
     gc = mask_centroids(targets.masks[t], grid)
     boxes = np.concatenate([pos[:, :2], dims[:, :2], yaw[:, None]], 1)
     gboxes = np.concatenate([gpos[:, :2], gdims[:, :2], gyaw[:, None]], 1)
@@ -126,12 +148,16 @@ def frame_errors(final, output, targets, grid, match_iou: float) -> dict[str, np
         "fit IoU": np.array([box_iou(a, b) for a, b in zip(fits, gboxes, strict=True)]),
         "yaw": heading_error(yaw, gyaw),
         "fit yaw": heading_error(fits[:, 4], gyaw),
-        "size": np.abs(dims - gdims).mean(1),
+        "size": np.abs(np.sort(dims[:, :2], 1) - np.sort(gdims[:, :2], 1)).mean(1),
+        "fit size": np.abs(np.sort(fits[:, 2:4], 1) - np.sort(gdims[:, :2], 1)).mean(1),
+        "h": np.abs(dims[:, 2] - gdims[:, 2]),
         "z": np.abs(pos[:, 2] - gpos[:, 2]),
     }
 
 
-def pose_errors(config, params, split, frames, batch, seed, match_iou=0.5, progress=True):
+def pose_errors(
+    config, params, split, frames, batch, seed, match_iou=0.5, progress=True, fit_to="segment"
+):
     """Errors of every matched object over ``frames`` simulated frames (``eval_sim``'s)."""
     from indoorbev_sim.generate import jitted_generate
     from tqdm import tqdm
@@ -161,7 +187,7 @@ def pose_errors(config, params, split, frames, batch, seed, match_iou=0.5, progr
         for i in range(batch):
             one = lambda tree, i=i: jax.tree.map(lambda x: np.asarray(x[i]), tree)  # noqa: E731
             rows.append(frame_errors(one(final), one(output), one(targets), config.grid,
-                                     match_iou))  # fmt: skip
+                                     match_iou, fit_to))  # fmt: skip
     return {key: np.concatenate([r[key] for r in rows]) for key in rows[0]}
 
 
@@ -173,6 +199,9 @@ def summary(errors: dict[str, np.ndarray], class_names) -> dict:
         if sel.any():
             out[name] = {"matched": int(sel.sum())}
             out[name].update({k: float(np.median(errors[k][sel])) for k in COLUMNS})
+    if len(errors["class"]):
+        out["all p90"] = {"matched": len(errors["class"])}
+        out["all p90"].update({k: float(np.percentile(errors[k], 90)) for k in COLUMNS})
     return out
 
 
@@ -194,6 +223,13 @@ def main(argv=None) -> None:
     add_frame_set_arguments(p)
     p.add_argument("--match-iou", type=float, default=0.5, help="mask IoU a pair exceeds")
     p.add_argument("--json", default=None, help="write the medians here")
+    p.add_argument(
+        "--fit-to",
+        default="segment",
+        choices=("segment", "mask"),
+        help="fit the boxes to the largest piece of each object's segment (what --boxes mask "
+        "writes) or to its whole binarised mask",
+    )
     add_views_argument(p, "the model's")
     args = p.parse_args(argv)
     if not 0.5 <= args.match_iou < 1.0:
@@ -210,7 +246,7 @@ def main(argv=None) -> None:
         p.error(str(e))
     seed = default_seed(args.split) if args.seed is None else args.seed
     errors = pose_errors(config, params, args.split, args.frames, args.batch, seed,
-                         args.match_iou)  # fmt: skip
+                         args.match_iou, fit_to=args.fit_to)  # fmt: skip
     table = summary(errors, config.data.class_names)
     print(f"{args.frames} {args.split} frames (seed {seed}, batch {args.batch}, views "
           f"{len(config.inference.views)}); medians of the objects matched at mask IoU > "

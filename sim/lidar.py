@@ -364,10 +364,11 @@ def _wait_at_exit() -> None:
 
     def wait() -> None:
         try:
-            jax.block_until_ready(jax.live_arrays())
             step = jax.jit(lambda x: x + 1)
-            for device in jax.local_devices():
-                step(jax.device_put(np.int32(0), device)).block_until_ready()
+            for platform in {"cpu", jax.default_backend()}:  # casts may sit on the CPU
+                jax.block_until_ready(jax.live_arrays(platform))
+                for device in jax.local_devices(backend=platform):
+                    step(jax.device_put(np.int32(0), device)).block_until_ready()
         except Exception:  # noqa: BLE001 - at exit there is no one left to tell
             pass
 

@@ -363,16 +363,21 @@ def test_pose_errors_of_the_true_boxes_are_zero_and_pairs_are_by_mask():
                                     dims=np.r_[dims, dims[:1]], yaw=np.r_[yaw, yaw[:1]],
                                     masks=np.r_[masks, masks[:1]])  # fmt: skip
     # Queries in the other order, plus one whose class differs from its object's.
+    panoptic = np.zeros(grid.shape, np.int32)
+    panoptic[masks[1]], panoptic[masks[0] & ~masks[1]] = 1, 2  # query q: id q + 1
+    panoptic[0, 0] = 3  # the third query's segment
     output = types.SimpleNamespace(segment_valid=np.array([True, True, True]),
                                    det_classes=np.array([3, 0, 5]),
-                                   det_masks=masks[[1, 0, 0]])  # fmt: skip
+                                   det_masks=masks[[1, 0, 0]], instance_ids=panoptic)  # fmt: skip
     final = types.SimpleNamespace(pos=pos[[1, 0, 0]], dims=dims[[1, 0, 0]],
                                   yaw=yaw[[1, 0, 0], None])  # fmt: skip
     errors = pose.frame_errors(final, output, targets, grid, 0.5)
     np.testing.assert_array_equal(np.sort(errors["class"]), [0, 3])
-    for key in ("centre", "size", "z", "yaw"):
+    for key in ("centre", "size", "h", "z", "yaw"):
         np.testing.assert_allclose(errors[key], 0.0, atol=1e-4)
     np.testing.assert_allclose(errors["IoU"], 1.0, atol=1e-5)
-    assert (errors["fit c."] < 0.05).all() and (errors["fit IoU"] > 0.7).all()
+    assert (errors["fit c."] < 0.05).all() and (errors["fit IoU"] > 0.8).all()
+    assert (errors["fit size"] < 0.05).all()
     table = pose.summary(errors, ["a", "b", "c", "d"])
     assert table["all"]["matched"] == 2 and table["a"]["matched"] == 1 and "b" not in table
+    assert table["all p90"]["centre"] == 0.0 and table["all p90"]["matched"] == 2

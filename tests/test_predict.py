@@ -309,10 +309,10 @@ def test_predictor_with_views_maps_features_and_segments_back(model_file, tmp_pa
 
 
 def test_predict_boxes_come_from_the_masks_or_the_head(model_file, tmp_path, capsys):
-    """``--boxes mask`` (the default) writes the rectangles fitted to the output masks,
+    """``--boxes mask`` (the default) writes the rectangles fitted to the output segments,
     ``--boxes head`` the regressed boxes; z and height are the head's in both, and the
     choice is part of the run (no resuming into another's outputs)."""
-    from indoorbev_jax.boxes import fit_box
+    from indoorbev_jax.boxes import segment_boxes
 
     config, params = P.load_model(model_file)
     cloud = _scans(1, seed=9, points=800)[0]
@@ -328,7 +328,7 @@ def test_predict_boxes_come_from_the_masks_or_the_head(model_file, tmp_path, cap
         assert cli_main(argv) == 0
         written[boxes] = kitti.read_labels(out / "label_2" / "scan.txt", config.data)
         assert json.loads((out / "predict.json").read_text())["boxes"] == boxes
-    fits = np.array([fit_box(output.det_masks[q], config.grid) for q in queries])
+    fits = segment_boxes(output.instance_ids, queries + 1, config.grid)
     head = np.concatenate([final.pos[queries, :2], np.abs(final.dims[queries, :2]),
                            final.yaw[queries]], 1)  # fmt: skip
     for boxes, expected in (("mask", fits), ("head", head)):

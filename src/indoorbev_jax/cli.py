@@ -149,9 +149,10 @@ def add_boxes_argument(parser: argparse.ArgumentParser) -> None:
         "--boxes",
         default="mask",
         choices=("mask", "head"),
-        help="'mask': x, y, length, width and yaw of the rectangle covering each object's "
-        "mask (default; several times closer to the true box on the simulated test set), "
-        "'head': the regressed box; z and height come from the head either way",
+        help="'mask': x, y, length, width and yaw of the rectangle around each object's "
+        "segment in the panoptic map (default; several times closer to the true box on the "
+        "simulated test set), 'head': the regressed box; z and height come from the head "
+        "either way",
     )
 
 

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from indoorbev_jax import viz
-from indoorbev_jax.boxes import BOX_SOURCES, fit_box
+from indoorbev_jax.boxes import BOX_SOURCES, segment_boxes
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data import kitti
 from indoorbev_jax.data.dataset import pad_points
@@ -339,8 +339,9 @@ def to_labels(
     Args:
       final, output: one frame's final-layer predictions and panoptic output (numpy).
       boxes: ``"head"``: the regressed boxes; ``"mask"``: x, y, length, width and yaw of
-        the rectangle covering each object's binarised mask (``boxes.fit_box``; needs
-        ``grid``), z and height from the head. Yaw is wrapped to [-pi, pi) either way.
+        the rectangle around the largest piece of each object's segment in the panoptic map
+        (``boxes.segment_boxes``; needs ``grid``), z and height from the head. Yaw is
+        wrapped to [-pi, pi) either way.
     """
     if boxes not in BOX_SOURCES:
         raise ValueError(f"boxes: expected one of {BOX_SOURCES}, got {boxes!r}")
@@ -351,10 +352,8 @@ def to_labels(
     if boxes == "mask":
         if grid is None:
             raise ValueError('boxes="mask" needs the grid the masks lie on')
-        for k, q in enumerate(queries):
-            pos[k, 0], pos[k, 1], dims[k, 0], dims[k, 1], yaw[k] = fit_box(
-                output.det_masks[q], grid
-            )
+        fitted = segment_boxes(output.instance_ids, queries + 1, grid)
+        pos[:, :2], dims[:, :2], yaw[:] = fitted[:, :2], fitted[:, 2:4], fitted[:, 4]
     labels = kitti.ObjectLabels(
         classes=output.det_classes[queries],
         dims=dims,
@@ -477,7 +476,7 @@ def predict(
       skip_bad_frames: a frame that cannot be read is reported and skipped (else the
         error names it and stops the run).
       boxes: where the label boxes' x, y, length, width and yaw come from (``to_labels``):
-        ``"mask"``, the rectangle covering each object's mask (the default: several times
+        ``"mask"``, the rectangle around each object's segment (the default: several times
         closer to the true box on the simulated test set, docs/RESULTS.md), or ``"head"``,
         the regressed box.
 
