@@ -45,8 +45,9 @@ from eval_sim import add_frame_set_arguments, default_seed  # noqa: E402
 from indoorbev_jax.boxes import fit_box, segment_boxes  # noqa: E402
 from indoorbev_jax.cli import add_views_argument  # noqa: E402
 from indoorbev_jax.config import ConfigError  # noqa: E402
-from indoorbev_jax.geometry import wrap_angle  # noqa: E402
-from indoorbev_jax.predict import load_model  # noqa: E402
+from indoorbev_jax.geometry import box_corners, cell_centers, wrap_angle  # noqa: E402
+from indoorbev_jax.metrics import mask_intersections  # noqa: E402
+from indoorbev_jax.predict import load_model, with_thresholds  # noqa: E402
 
 COLUMNS = (
     "centre",
@@ -67,9 +68,7 @@ def box_polygon(x: float, y: float, length: float, width: float, yaw: float):
     """The BEV rectangle of a box (length along its heading) as a shapely polygon."""
     from shapely.geometry import Polygon
 
-    c, s = np.cos(yaw), np.sin(yaw)
-    corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * [length / 2, width / 2]
-    return Polygon(corners @ np.array([[c, s], [-s, c]]) + [x, y])
+    return Polygon(box_corners(np.array([[x, y]]), np.array([[length, width]]), np.array([yaw]))[0])
 
 
 def box_iou(a, b) -> float:
@@ -82,9 +81,7 @@ def box_iou(a, b) -> float:
 
 def mask_centroids(masks: np.ndarray, grid) -> np.ndarray:
     """float64 [K, 2]: (x, y) mean of the cell centres of each non-empty mask [K, H, W]."""
-    h, w = grid.shape
-    xs = grid.x_range[0] + (np.arange(w) + 0.5) * grid.cell_size
-    ys = grid.y_range[0] + (np.arange(h) + 0.5) * grid.cell_size
+    xs, ys = (np.asarray(c, np.float64) for c in cell_centers(grid))
     area = masks.sum((1, 2)).astype(np.float64)
     cx = (masks.sum(1) * xs).sum(1) / area
     cy = (masks.sum(2) * ys).sum(1) / area
@@ -94,11 +91,8 @@ def mask_centroids(masks: np.ndarray, grid) -> np.ndarray:
 def match_frame(det_masks, det_classes, gt_masks, gt_classes, match_iou: float):
     """Unique pairs (d, g) of the same class with mask IoU > ``match_iou`` (>= 0.5 makes
     each pair unique, as in PQ); returns int arrays (d, g)."""
-    cells = int(np.prod(gt_masks.shape[1:]))  # explicit: a frame may have no object
-    d = det_masks.reshape(len(det_masks), cells).astype(np.float32)
-    g = gt_masks.reshape(len(gt_masks), cells).astype(np.float32)
-    inter = d @ g.T
-    union = d.sum(1)[:, None] + g.sum(1)[None] - inter
+    inter, area_d, area_g = mask_intersections(det_masks, gt_masks)
+    union = area_d[:, None] + area_g[None] - inter
     iou = np.where(union > 0, inter / np.maximum(union, 1), 0.0)
     iou = np.where(det_classes[:, None] == gt_classes[None], iou, 0.0)
     pairs, used_d, used_g = [], set(), set()
@@ -238,10 +232,7 @@ def main(argv=None) -> None:
         p.error(f"--frames {args.frames} must be a positive multiple of --batch {args.batch}")
     try:
         config, params = load_model(args.model)
-        if args.views is not None:
-            config = dataclasses.replace(
-                config, inference=dataclasses.replace(config.inference, views=args.views)
-            )
+        config = with_thresholds(config, views=args.views)
     except (OSError, ValueError, ConfigError) as e:
         p.error(str(e))
     seed = default_seed(args.split) if args.seed is None else args.seed

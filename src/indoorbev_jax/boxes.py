@@ -23,6 +23,12 @@ HEADINGS = 90  # candidate headings in [0, 90) degrees: 1 degree apart
 PAD_CELLS = 0.3  # cells added to the length and the width of the centres' extent
 
 
+def check_box_source(boxes: str) -> None:
+    """Raises ``ValueError`` unless ``boxes`` is one of ``BOX_SOURCES``."""
+    if boxes not in BOX_SOURCES:
+        raise ValueError(f"boxes: expected one of {BOX_SOURCES}, got {boxes!r}")
+
+
 def largest_piece(mask: np.ndarray) -> np.ndarray:
     """bool [...]: the largest 8-connected piece of a 2D mask (the first in row order on a
     tie); a speck a mask leaves elsewhere then does not stretch its box."""

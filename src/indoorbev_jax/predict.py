@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from indoorbev_jax import viz
-from indoorbev_jax.boxes import BOX_SOURCES, segment_boxes
+from indoorbev_jax.boxes import check_box_source, segment_boxes
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data import kitti
 from indoorbev_jax.data.dataset import pad_points
@@ -343,8 +343,7 @@ def to_labels(
         (``boxes.segment_boxes``; needs ``grid``), z and height from the head. Yaw is
         wrapped to [-pi, pi) either way.
     """
-    if boxes not in BOX_SOURCES:
-        raise ValueError(f"boxes: expected one of {BOX_SOURCES}, got {boxes!r}")
+    check_box_source(boxes)
     queries = np.flatnonzero(output.segment_valid)
     dims = np.abs(final.dims[queries]).astype(np.float32)
     pos = np.array(final.pos[queries], np.float32)
@@ -489,8 +488,7 @@ def predict(
       ``empty_frames`` those with no valid point in the workspace.
     """
     intensity_factor(intensity, np.zeros((0, 4), np.float32))  # bad units fail first
-    if boxes not in BOX_SOURCES:
-        raise ValueError(f"boxes: expected one of {BOX_SOURCES}, got {boxes!r}")
+    check_box_source(boxes)
     config, params = load_model(model_path)
     fingerprint = model_fingerprint(config, params)  # the model file's, before --views
     config = with_thresholds(config, views=views)

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from indoorbev_jax.boxes import BOX_SOURCES
+from indoorbev_jax.boxes import check_box_source
 from indoorbev_jax.data import kitti
 from indoorbev_jax.predict import Predictor, load_model, to_labels, with_thresholds
 from indoorbev_jax.ros2 import messages as M
@@ -94,8 +94,7 @@ class Detector:
         self, config, params, ts=None, skip_nonfinite: bool = False, intensity="auto",
         boxes: str = "mask",
     ):  # fmt: skip
-        if boxes not in BOX_SOURCES:
-            raise ValueError(f"boxes: expected one of {BOX_SOURCES}, got {boxes!r}")
+        check_box_source(boxes)
         self.config = config
         self.boxes = boxes
         self.skip_nonfinite = skip_nonfinite
@@ -154,8 +153,10 @@ class Detector:
             return self._empty(stamp, frame, f"{source}: {notes[0]}; cloud skipped "
                                "(--skip-nonfinite processes the finite points)")  # fmt: skip
         if not valid.any():
-            why = "no valid point (finite, inside the grid, beyond sim.min_range)"
-            why = "empty" if len(points) == 0 else why
+            why = (
+                "empty" if len(points) == 0
+                else "no valid point (finite, inside the grid, beyond sim.min_range)"
+            )  # fmt: skip
             return self._empty(stamp, frame, f"{source}: {why}; {len(points)} points")
         start = time.perf_counter()
         final, output, _ = self.predictor.infer(padded, valid)
