@@ -313,11 +313,15 @@ def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
         ("bench_matching", ["--grid", "60"], "--grid must be at least 64 cells, got 60"),
         ("bench_ros2", ["--latency-frames", "1"], "--latency-frames gives 1 clouds"),
         ("bench_ros2", ["--seconds", "0.1"], "--seconds x --rate gives 1 clouds"),
+        ("pose_errors", ["--model", "m", "--match-iou", "0.4"], "--match-iou must lie in [0.5, 1)"),
+        ("pose_errors", ["--model", "m", "--frames", "10"], "--frames 10 must be a positive multi"),
+        ("pose_errors", ["--model", "none.msgpack"], "none.msgpack: no such model file or run"),
     ],
 )
-def test_benchmarks_refuse_sizes_they_cannot_run(script, argv, message, capsys):
+def test_scripts_refuse_arguments_they_cannot_run(script, argv, message, capsys):
     """Sizes that used to end in a numpy traceback (footprints of up to 60 cells on a smaller
-    grid) or in a division by zero (one answered cloud) are one line, status 2."""
+    grid) or in a division by zero (one answered cloud), and pose_errors' bad arguments or
+    model file, are one line, status 2."""
     with pytest.raises(SystemExit) as exit_info:
         _script(script).main(argv)
     assert exit_info.value.code == 2

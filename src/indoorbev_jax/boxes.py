@@ -66,7 +66,7 @@ def fit_box(mask: np.ndarray, grid: GridConfig, headings: int = HEADINGS) -> np.
     centres of a mask's cells, its length and width then grown by ``PAD_CELLS`` cells.
 
     A cell is in a footprint when its centre is (``data.rasterize``), so the centres' extent
-    understates a box and whole cells overstate it (by about 0.1 m at 0.1 m cells).
+    understates a box and whole cells overstate it (they add up to half a cell at each end).
     ``PAD_CELLS`` = 0.3 leaves a mean bias under 0.01 m on rasterised random boxes
     (tests/test_boxes.py). Only each row's first and last cells are looked at: they span the
     same convex hull, so a speckled mask costs no more than a solid one.
