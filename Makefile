@@ -8,14 +8,18 @@ export JAX_PLATFORMS ?= cpu
 export JAX_COMPILATION_CACHE_DIR ?= $(CURDIR)/.cache/jax
 export JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS ?= 2
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench lock clean
 
-$(STAMP): pyproject.toml
+# The tested versions (constraints.txt); `make test CONSTRAINTS=` takes the newest releases.
+CONSTRAINTS ?= constraints.txt
+PIN := $(if $(CONSTRAINTS),-c $(CONSTRAINTS))
+
+$(STAMP): pyproject.toml $(CONSTRAINTS)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e ".[dev]"
+	$(PY) -m pip install -q $(PIN) -e ".[dev]"
 	# ROS 2 wheels exist for x86_64 Linux only; elsewhere the live-node test skips.
-	$(PY) -m pip install -q -e ".[dev,ros]" || echo "ROS 2 wheels not installable here: tests/test_ros2.py will skip its live test"
+	$(PY) -m pip install -q $(PIN) -e ".[dev,ros]" || echo "ROS 2 wheels not installable here: tests/test_ros2.py will skip its live test"
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -36,6 +40,18 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q torch==2.13.0
 	for b in experiments/bench_*.py; do $(PY) $$b || exit 1; done
+
+# Newest releases into a scratch venv, frozen into constraints.txt (then run make test).
+LOCK_VENV := .cache/lock-venv
+lock:
+	rm -rf $(LOCK_VENV)
+	$(PYTHON) -m venv $(LOCK_VENV)
+	$(LOCK_VENV)/bin/python -m pip install -q --upgrade pip
+	$(LOCK_VENV)/bin/python -m pip install -q -e ".[dev,ros]"
+	sed -n '/^#/p' constraints.txt > constraints.txt.tmp
+	$(LOCK_VENV)/bin/python -m pip freeze --exclude-editable >> constraints.txt.tmp
+	mv constraints.txt.tmp constraints.txt
+	rm -rf $(LOCK_VENV)
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache .cache

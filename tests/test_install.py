@@ -1,0 +1,55 @@
+"""constraints.txt, the versions `make` installs, against pyproject.toml's requirements."""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+
+import pytest
+from packaging.requirements import Requirement
+from packaging.utils import canonicalize_name
+from packaging.version import Version
+
+ROOT = Path(__file__).resolve().parents[1]
+PIN = re.compile(r"^([A-Za-z0-9][A-Za-z0-9._-]*)==([^\s;#]+)$")
+
+
+def read_pins() -> dict[str, Version]:
+    pins: dict[str, Version] = {}
+    path = ROOT / "constraints.txt"
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip() or line.startswith("#"):
+            continue
+        found = PIN.match(line.strip())
+        assert found, f"constraints.txt line {lineno}: expected NAME==VERSION, got {line!r}"
+        name = canonicalize_name(found.group(1))
+        assert name not in pins, f"constraints.txt line {lineno}: {name} is pinned twice"
+        pins[name] = Version(found.group(2))
+    return pins
+
+
+def declared_requirements() -> list[tuple[str, Requirement]]:
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    found = [("dependencies", Requirement(r)) for r in project["dependencies"]]
+    for extra, reqs in project["optional-dependencies"].items():
+        found += [(f"optional-dependencies.{extra}", Requirement(r)) for r in reqs]
+    return found
+
+
+def test_every_declared_requirement_is_pinned_within_its_bounds():
+    pins = read_pins()
+    declared = declared_requirements()
+    assert len(declared) > 10
+    for where, req in declared:
+        name = canonicalize_name(req.name)
+        assert name in pins, f"pyproject {where}: {req.name} has no pin in constraints.txt"
+        assert req.specifier.contains(pins[name], prereleases=True), (
+            f"pyproject {where}: {req} excludes the pinned {req.name}=={pins[name]}"
+        )
+
+
+@pytest.mark.parametrize("name", ["jax", "jaxlib", "flax", "optax", "warp-lang", "mujoco-mjx"])
+def test_the_core_stack_is_pinned(name):
+    # jaxlib is no requirement of ours but must move with jax.
+    assert canonicalize_name(name) in read_pins()
