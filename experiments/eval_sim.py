@@ -50,6 +50,7 @@ import numpy as np
 from indoorbev_jax.cli import add_views_argument
 from indoorbev_jax.config import ConfigError, InferenceConfig
 from indoorbev_jax.evaluate import report
+from indoorbev_jax.geometry import in_workspace
 from indoorbev_jax.metrics import Evaluator, format_percent
 from indoorbev_jax.predict import load_model
 
@@ -116,6 +117,7 @@ def evaluate_sim_sweep(
     inferences,
     progress=True,
     intensity_factor: float = 1.0,
+    z_offset: float = 0.0,
 ) -> list[Evaluator]:
     """``evaluate_sim`` for several inference settings on the same frames, in one pass.
 
@@ -125,6 +127,9 @@ def evaluate_sim_sweep(
         one that fuses the views (``inference.apply_views``).
       intensity_factor: the simulated intensity is multiplied by this before the model sees
         it (1: as simulated), to measure what other intensity units do to the model.
+      z_offset: metres added to every point's z before the model sees it (0: as simulated),
+        to measure a sensor height the model was not trained on and its correction
+        (``predict``'s ``--lidar-height``). The targets are footprints, which z leaves alone.
 
     Returns:
       One ``Evaluator`` per entry of ``inferences``, each equal to ``evaluate_sim`` with
@@ -148,7 +153,8 @@ def evaluate_sim_sweep(
 
     @jax.jit
     def predict(params, points, valid):
-        points = points.at[..., 3].multiply(intensity_factor)
+        points = points.at[..., 3].multiply(intensity_factor).at[..., 2].add(z_offset)
+        valid = valid & in_workspace(points, config.grid)  # as pad_points would judge them
         predictions = apply_views(model, params, points, valid, inferences[0])
         return tuple(panoptic_inference(predictions, inference) for inference in inferences)
 
@@ -226,6 +232,20 @@ def main(argv=None) -> None:
         help="multiply the simulated intensity by this (150: a Livox driver's units fed raw; "
         "0: a sensor without intensity)",
     )
+    p.add_argument(
+        "--sensor-height",
+        type=_thresholds,
+        default=None,
+        help="simulate the lidar this high above the floor, metres: one value or MIN,MAX "
+        "(default: the model's sim.sensor_height)",
+    )
+    p.add_argument(
+        "--z-offset",
+        type=float,
+        default=0.0,
+        help="add this to every point's z before the model sees it, metres (what predict's "
+        "--lidar-height does for a sensor outside the trained heights)",
+    )
     add_views_argument(p, "the model's")
     p.add_argument(
         "--view-iou", type=float, default=None, help="inference.view_iou (default: the model's)"
@@ -238,6 +258,15 @@ def main(argv=None) -> None:
         config, params = load_model(args.model)
     except (OSError, ValueError) as e:
         p.exit(2, f"eval_sim: {e}\n")
+    if args.sensor_height is not None:
+        heights = args.sensor_height * 2 if len(args.sensor_height) == 1 else args.sensor_height
+        if len(heights) != 2:
+            p.error(f"--sensor-height: expected HEIGHT or MIN,MAX, got {len(heights)} values")
+        try:
+            sim = dataclasses.replace(config.sim, sensor_height=heights)
+        except ConfigError as e:
+            p.error(f"--sensor-height: {e}")
+        config = dataclasses.replace(config, sim=sim)
     scores = args.score_threshold or (config.inference.score_threshold,)
     masks = args.mask_threshold or (config.inference.mask_threshold,)
     views = {"views": args.views, "view_iou": args.view_iou}
@@ -258,7 +287,7 @@ def main(argv=None) -> None:
     start = time.perf_counter()
     evaluators = evaluate_sim_sweep(
         config, params, args.split, args.frames, args.batch, args.seed, inferences,
-        not args.no_progress, args.intensity_factor,
+        not args.no_progress, args.intensity_factor, args.z_offset,
     )  # fmt: skip
     from indoorbev_sim.objects import ALL_VARIANTS
 
@@ -267,6 +296,7 @@ def main(argv=None) -> None:
     title = "per object variant (* held out of train and val)"
     setup = {"model": str(args.model), "split": args.split, "frames": args.frames,
              "seed": args.seed, "intensity_factor": args.intensity_factor,
+             "sensor_height": list(config.sim.sensor_height), "z_offset": args.z_offset,
              "views": list(inferences[0].views), "view_iou": inferences[0].view_iou}  # fmt: skip
     sweep = []
     for inference, evaluator in zip(inferences, evaluators, strict=True):
@@ -281,6 +311,10 @@ def main(argv=None) -> None:
         f"frames, seed {args.seed}"  # fmt: skip
     if args.intensity_factor != 1.0:
         head += f", intensity x {args.intensity_factor:g}"
+    if args.sensor_height is not None:
+        head += ", sensor height {:g}-{:g} m".format(*config.sim.sensor_height)
+    if args.z_offset:
+        head += f", z {args.z_offset:+g} m"
     if inferences[0].views != ("identity",):
         head += f", {len(inferences[0].views)} views fused at IoU {inferences[0].view_iou:g}"
     seconds = f"{time.perf_counter() - start:.0f} s"

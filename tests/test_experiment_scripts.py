@@ -63,6 +63,12 @@ def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, caps
         eval_sim.main(["--model", str(path), "--mask-threshold", "0.5,2"])
     assert exit_info.value.code == 2
     assert "inference.mask_threshold': must lie in [0, 1]" in capsys.readouterr().err
+    for bad, said in (("1,2,3", "expected HEIGHT or MIN,MAX, got 3 values"),
+                      ("0.8,0.3", "sim.sensor_height': expected 0 <= min <= max")):  # fmt: skip
+        with pytest.raises(SystemExit) as exit_info:
+            eval_sim.main(["--model", str(path), "--sensor-height", bad])
+        assert exit_info.value.code == 2
+        assert said in capsys.readouterr().err
 
 
 def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tmp_path, capsys):

@@ -509,3 +509,32 @@ def test_unknown_ros_args_fail_first_in_one_line(capsys):
     from indoorbev_jax.ros2 import runtime
 
     runtime.check_ros_args(["-r", "points:=/livox/lidar"])  # a remapping is taken
+
+
+def test_levelled_clouds_publish_in_the_level_frame(model, capsys):
+    """With --lidar-rpy the outputs are in the level frame, which needs its own frame id."""
+    from indoorbev_jax import cli
+    from indoorbev_jax.mount import LidarMount
+    from indoorbev_jax.ros2 import detect
+
+    mount = LidarMount(pitch=20.0, height=1.2)
+    with pytest.raises(ValueError, match="name their frame with --level-frame"):
+        Detector(CFG, model[1], TS, mount=mount)
+    with pytest.raises(ValueError, match="name their frame with --level-frame"):
+        detect.run_detect_node("no-such-model", mount=mount)  # before the model loads
+    assert cli.main(["ros2", "detect", "--checkpoint", "m", "--lidar-rpy", "0,20,0"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("indoorbev ros2 detect: error: --lidar-rpy levels the clouds")
+    assert err.count("\n") == 1
+    levelled = Detector(CFG, model[1], TS, mount=mount, level_frame="lidar_level")
+    tilted = _scan()
+    tilted[:, :3] = (tilted[:, :3].astype(np.float64) @ mount.rotation()).astype(np.float32)
+    msgs = _decode(levelled.process(_raw_cloud(tilted)))
+    for m in (msgs["detections"], msgs["occupancy"], *msgs["markers"].markers):
+        assert m.header.frame_id == "lidar_level"
+    predictor = P.Predictor(CFG, model[1], mount=mount)
+    labels, _ = predictor.labels(*predictor.infer(*predictor.prepare(tilted)[:2])[:2])
+    got = M.detections_to_labels(msgs["detections"])
+    assert len(labels) > 0
+    np.testing.assert_array_equal(got.pos, labels.pos)  # z moved back by the height offset
+    np.testing.assert_array_equal(got.classes, labels.classes)

@@ -156,6 +156,52 @@ def add_boxes_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _rpy(text: str) -> tuple[float, float, float]:
+    from indoorbev_jax.mount import parse_rpy
+
+    try:
+        return parse_rpy(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _height(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected metres >= 0, got {text!r}")
+    return value
+
+
+def add_mount_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--lidar-rpy`` and ``--lidar-height``: how the lidar sits (``mount.LidarMount``)."""
+    parser.add_argument(
+        "--lidar-rpy",
+        type=_rpy,
+        default=(0.0, 0.0, 0.0),
+        metavar="ROLL,PITCH,YAW",
+        help="the lidar's orientation on the robot in degrees (URDF rpy), for a tilted mount: "
+        "clouds are levelled first and the outputs are in that level frame (default 0,0,0)",
+    )
+    parser.add_argument(
+        "--lidar-height",
+        type=_height,
+        default=None,
+        metavar="METRES",
+        help="the lidar's height above the floor: outside the model's trained heights "
+        "(sim.sensor_height) the cloud is moved to the nearest, output z moved back",
+    )
+
+
+def mount_from_args(args: argparse.Namespace):
+    """The ``mount.LidarMount`` of ``add_mount_arguments``' options."""
+    from indoorbev_jax.mount import LidarMount
+
+    return LidarMount(*args.lidar_rpy, height=args.lidar_height)
+
+
 def dataset_check(args: argparse.Namespace) -> int:
     """Validates every frame of a dataset folder; prints statistics and the first problems."""
     from indoorbev_jax.config import ConfigError
@@ -281,6 +327,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_intensity(pred)
     add_views_argument(pred, "the model file's")
     add_boxes_argument(pred)
+    add_mount_arguments(pred)
+    pred.add_argument(
+        "--level-frame",
+        default=None,
+        help="with --lidar-rpy and --bag-out: frame id of the bag's levelled clouds and detections",
+    )
     pred.set_defaults(func=run_predict)
 
     ros2 = commands.add_parser("ros2", help="live ROS 2 nodes (pip install -e .[ros])")
@@ -312,6 +364,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_intensity(det)
     add_views_argument(det, "the model file's")
     add_boxes_argument(det)
+    add_mount_arguments(det)
+    det.add_argument(
+        "--level-frame",
+        default=None,
+        help="frame id of the outputs when --lidar-rpy levels the clouds (required then: "
+        "the lidar's origin with z up; publish its transform)",
+    )
     det.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
                      help="the rest goes to rclpy (remappings, log levels)")  # fmt: skip
     det.set_defaults(func=run_ros2_detect)
@@ -338,6 +397,8 @@ def run_ros2_detect(args: argparse.Namespace) -> int:
             intensity=args.intensity,
             views=args.views,
             boxes=args.boxes,
+            mount=mount_from_args(args),
+            level_frame=args.level_frame,
         )
     except (RosUnavailable, OSError, ValueError) as e:
         print(f"indoorbev ros2 detect: error: {e}", file=sys.stderr)
@@ -364,6 +425,8 @@ def run_predict(args: argparse.Namespace) -> int:
             skip_bad_frames=args.skip_bad_frames,
             overwrite=args.overwrite,
             boxes=args.boxes,
+            mount=mount_from_args(args),
+            level_frame=args.level_frame,
         )
     except (OSError, ValueError) as e:  # bad model file, input or bag (rosbag.BagError)
         print(f"indoorbev predict: error: {e}", file=sys.stderr)

@@ -38,6 +38,7 @@ from indoorbev_jax.data.dataset import pad_points
 from indoorbev_jax.geometry import wrap_angle
 from indoorbev_jax.inference import apply_views, panoptic_inference, unview_cells
 from indoorbev_jax.models import IndoorBEV
+from indoorbev_jax.mount import LidarMount, check_level_frame
 
 MODEL_FORMAT = "indoorbev_jax-model-v1"
 
@@ -267,11 +268,21 @@ class Predictor:
     cloud's intensity is mapped onto the simulator's [0, 1] before the model sees it. With
     "auto", the first cloud with an intensity above 1 switches the stream to Livox units for
     good, so that a later dark scan (all values <= 1) is not read as [0, 1] reflectivity.
+    ``mount`` (``mount.LidarMount``) levels the clouds of a tilted lidar and moves one
+    mounted outside the trained heights to the nearest; ``labels`` undoes the height move.
     """
 
-    def __init__(self, config: Config, params: Any, intensity: str | float = "auto"):
+    def __init__(
+        self,
+        config: Config,
+        params: Any,
+        intensity: str | float = "auto",
+        mount: LidarMount | None = None,
+    ):
         self.config = config
         self.params = params
+        self.mount = mount if mount is not None else LidarMount()
+        self.z_offset = self.mount.z_offset(config.sim.sensor_height)
         intensity_factor(intensity, np.zeros((0, 4), np.float32))  # bad units fail here
         self.intensity = intensity
         self.last_counts: dict[str, int] = {}
@@ -300,18 +311,19 @@ class Predictor:
 
     def prepare(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
         """A raw cloud as the model takes it: (points padded [N, 4] with intensity in [0, 1],
-        valid [N], ``pad_points``' counts of non-finite, blind-zone (within
-        ``sim.min_range``), out-of-workspace and dropped points (past ``data.max_points``,
-        thinned evenly)). Also kept as ``last_counts``, and the
+        in the mount's level frame, valid [N], ``pad_points``' counts of non-finite,
+        blind-zone (within ``sim.min_range``), out-of-workspace and dropped points (past
+        ``data.max_points``, thinned evenly)). Also kept as ``last_counts``, and the
         intensity's factor as ``last_intensity_factor``."""
         cfg = self.config
         factor = intensity_factor(self.intensity, points)
         if self.intensity == "auto":
             self._auto_factor = factor = min(factor, self._auto_factor)
         self.last_intensity_factor = factor
+        points = self.mount.apply(points, cfg.sim.sensor_height)
         points = normalize_intensity(points, self.last_intensity_factor)
         padded, valid, self.last_counts = pad_points(
-            points, cfg.grid, cfg.data.max_points, cfg.sim.min_range
+            points, cfg.grid, cfg.data.max_points, cfg.sim.min_range, (0.0, 0.0, self.z_offset)
         )
         return padded, valid, self.last_counts
 
@@ -328,6 +340,13 @@ class Predictor:
         final, output, bev = jax.device_get((final, output, bev))
         one = lambda tree: jax.tree.map(lambda x: np.asarray(x)[0], tree)  # noqa: E731
         return one(final), one(output), np.asarray(bev)[0]
+
+    def labels(self, final, output, boxes: str = "mask") -> tuple[kitti.ObjectLabels, np.ndarray]:
+        """``to_labels`` of one ``infer``red frame, in the mount's level frame: the height
+        correction's z offset is taken back off the boxes."""
+        labels, ids = to_labels(final, output, boxes, self.config.grid)
+        labels.pos[:, 2] -= self.z_offset
+        return labels, ids
 
 
 def to_labels(
@@ -456,6 +475,8 @@ def predict(
     skip_bad_frames: bool = False,
     overwrite: bool = False,
     boxes: str = "mask",
+    mount: LidarMount | None = None,
+    level_frame: str | None = None,
 ) -> dict:
     """Runs the model over INPUT and writes labels, masks, pictures (and a bag).
 
@@ -478,6 +499,10 @@ def predict(
         ``"mask"``, the rectangle around each object's segment (the default: several times
         closer to the true box on the simulated test set, docs/RESULTS.md), or ``"head"``,
         the regressed box.
+      mount: how the lidar sits (``mount.LidarMount``; None: level, within the trained
+        heights); with a rotation, every output is in its level frame, and ``bag_out``
+        writes the levelled clouds with the detections under ``level_frame`` (then
+        required) as their frame id.
 
     Returns:
       ``{"frames", "latency_ms": {"median", "p90", "max"}, "objects", "thinned_frames",
@@ -489,6 +514,9 @@ def predict(
     """
     intensity_factor(intensity, np.zeros((0, 4), np.float32))  # bad units fail first
     check_box_source(boxes)
+    mount = mount if mount is not None else LidarMount()
+    if bag_out is not None:
+        check_level_frame(mount, level_frame)
     config, params = load_model(model_path)
     fingerprint = model_fingerprint(config, params)  # the model file's, before --views
     config = with_thresholds(config, views=views)
@@ -515,14 +543,18 @@ def predict(
         "views": list(config.inference.views),
         "boxes": boxes,
     }
+    if mount != LidarMount():  # older folders have no "mount" entry: level, as before
+        run["mount"] = dataclasses.asdict(mount)
     _prepare_out(out, run, overwrite)
-    predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity)
+    predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity, mount)
     grid = config.grid
     workspace = f"x {list(grid.x_range)}, y {list(grid.y_range)}, z {list(grid.z_range)} m"
     summary = {"frames": 0, "objects": 0, "thinned_frames": 0, "resumed_frames": 0,
                "bad_frames": [], "empty_frames": []}  # fmt: skip
     latencies, compiled, factors_said = [], [], set()
     say = functools.partial(print, flush=True) if verbose else (lambda *a, **k: None)
+    if mount != LidarMount():
+        say(f"lidar mount: {mount.describe(config.sim.sensor_height)}")
     started = time.perf_counter()
 
     def run_frames():
@@ -550,7 +582,10 @@ def predict(
             summary["objects"] += len(labels)
             default_ns = position * 100_000_000  # 10 Hz for inputs without times
             log_ns = frame.log_ns if frame.log_ns is not None else default_ns
-            yield log_ns, frame.frame_name, frame.points, labels, frame.stamp_ns
+            if mount.rotated:  # the bag's cloud in the detections' frame
+                yield log_ns, level_frame, mount.levelled(frame.points), labels, frame.stamp_ns
+            else:
+                yield log_ns, frame.frame_name, frame.points, labels, frame.stamp_ns
 
     def predict_frame(frame, count, label_path, mask_path, picture_path) -> str:
         start = time.perf_counter()
@@ -560,7 +595,7 @@ def predict(
         if compiled:  # the first model call of this process compiles: not timed
             latencies.append(ms)
         compiled.append(True)
-        labels, ids = to_labels(final, output, boxes, config.grid)
+        labels, ids = predictor.labels(final, output, boxes)
         kitti.write_mask(mask_path, ids)
         if pictures:
             pic = render_prediction(config, padded, valid, output, bev, labels, ids)

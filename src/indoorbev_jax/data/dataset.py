@@ -57,12 +57,17 @@ class FrameStats:
 
 
 def pad_points(
-    points: np.ndarray, grid: GridConfig, max_points: int, min_range: float = 0.0
+    points: np.ndarray,
+    grid: GridConfig,
+    max_points: int,
+    min_range: float = 0.0,
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """Pads a raw cloud to ``[max_points, 4]`` with a validity mask.
 
-    Non-finite points, points closer to the origin (the sensor) than ``min_range`` and
-    out-of-workspace points are left out (counted). Callers pass ``sim.min_range``: the
+    Non-finite points, points closer to the sensor (at ``origin``: a ``mount.LidarMount``
+    height correction moves it off zero) than ``min_range`` and out-of-workspace points are
+    left out (counted). Callers pass ``sim.min_range``: the
     simulated training scans have no return that close, and lidar drivers (Livox's among
     them) write a pulse with no return as (0, 0, 0), which lies inside the workspace. Of
     more than ``max_points`` valid points, ``max_points`` evenly spaced in the input order
@@ -76,7 +81,7 @@ def pad_points(
     points = np.asarray(points, np.float32).reshape(-1, 4)
     finite = np.isfinite(points).all(axis=1)
     # float64 and a 1e-5 margin: a simulated return at exactly min_range stays valid.
-    radius = np.linalg.norm(points[:, :3].astype(np.float64), axis=1)
+    radius = np.linalg.norm(points[:, :3].astype(np.float64) - np.asarray(origin), axis=1)
     blind = finite & (radius < min_range * (1.0 - 1e-5))
     inside = finite & ~blind & in_workspace(points, grid)
     keep = np.flatnonzero(inside)

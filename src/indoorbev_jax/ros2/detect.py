@@ -28,7 +28,8 @@ import numpy as np
 
 from indoorbev_jax.boxes import check_box_source
 from indoorbev_jax.data import kitti
-from indoorbev_jax.predict import Predictor, load_model, to_labels, with_thresholds
+from indoorbev_jax.mount import LidarMount, check_level_frame
+from indoorbev_jax.predict import Predictor, load_model, with_thresholds
 from indoorbev_jax.ros2 import messages as M
 from indoorbev_jax.rosbag import (
     MARKER_ARRAY,
@@ -87,20 +88,26 @@ class Detector:
     marker, an all-unknown grid). So does a cloud holding non-finite points, unless
     ``skip_nonfinite`` (organized clouds that mark missing returns with NaN): then those
     points are dropped with a warning and the rest is processed. ``intensity``: the units of
-    the clouds' intensity (``predict.intensity_factor``).
+    the clouds' intensity (``predict.intensity_factor``). ``mount`` (``mount.LidarMount``)
+    levels the clouds of a tilted lidar; the outputs then carry ``level_frame`` as their
+    frame id (required with a rotation), else the cloud's.
     """
 
     def __init__(
         self, config, params, ts=None, skip_nonfinite: bool = False, intensity="auto",
-        boxes: str = "mask",
+        boxes: str = "mask", mount: LidarMount | None = None, level_frame: str | None = None,
     ):  # fmt: skip
         check_box_source(boxes)
+        self.mount = mount if mount is not None else LidarMount()
+        check_level_frame(self.mount, level_frame)
+        self.level_frame = level_frame or None
         self.config = config
         self.boxes = boxes
         self.skip_nonfinite = skip_nonfinite
         self.ts = ts if ts is not None else default_typestore()
         self.names = config.data.class_names
-        self.predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity)
+        params = jax.tree.map(jnp.asarray, params)
+        self.predictor = Predictor(config, params, intensity, self.mount)
 
     def warmup(self) -> float:
         """Runs one dummy cloud through every step (the model compiles, ``rosbags`` builds
@@ -161,7 +168,7 @@ class Detector:
         start = time.perf_counter()
         final, output, _ = self.predictor.infer(padded, valid)
         infer_ms = 1e3 * (time.perf_counter() - start)
-        labels, ids = to_labels(final, output, self.boxes, self.config.grid)
+        labels, ids = self.predictor.labels(final, output, self.boxes)
         warning = f"{source}: {'; '.join(notes)} (those points are skipped)" if notes else None
         return Result(stamp, frame, self._serialize(labels, ids > 0, stamp, frame),
                       labels, warning, infer_ms)  # fmt: skip
@@ -172,7 +179,7 @@ class Detector:
         return Result(stamp, frame, outputs, labels, warning, 0.0)
 
     def _serialize(self, labels, occupied, stamp: int, frame: str) -> dict[str, bytes]:
-        ts = self.ts
+        ts, frame = self.ts, self.level_frame or frame
         msgs = {
             "detections": M.detections_msg(ts, labels, stamp, frame),
             "markers": M.footprint_markers_msg(ts, labels, self.names, stamp, frame),
@@ -262,6 +269,8 @@ def run_detect_node(
     intensity: str | float = "auto",
     views: tuple[str, ...] | None = None,
     boxes: str = "mask",
+    mount: LidarMount | None = None,
+    level_frame: str | None = None,
 ) -> dict:
     """Runs the detect node until Ctrl-C / SIGTERM (or ``max_frames`` processed frames).
 
@@ -282,6 +291,9 @@ def run_detect_node(
       views: test-time views (``config.VIEWS``; None: the model file's ``inference.views``).
       boxes: ``"mask"`` (boxes fitted to the masks) or ``"head"`` (regressed), as for
         ``predict.to_labels``.
+      mount: how the lidar sits (``mount.LidarMount``; None: level, within the trained
+        heights).
+      level_frame: frame id of the outputs, required when ``mount`` rotates the clouds.
 
     Returns:
       the statistics of ``_Stats.summary`` (counts and latency percentiles).
@@ -289,6 +301,7 @@ def run_detect_node(
     from indoorbev_jax.ros2 import runtime
 
     out_topics = check_settings(topic, out_ns, log_every, max_frames)
+    check_level_frame(mount if mount is not None else LidarMount(), level_frame)
     runtime.require_rclpy()
     runtime.check_ros_args(ros_args)
     if record:  # before the slow warm-up
@@ -298,8 +311,12 @@ def run_detect_node(
     config, params = load_model(checkpoint)
     config = with_thresholds(config, views=views)
     detector = Detector(
-        config, params, skip_nonfinite=skip_nonfinite, intensity=intensity, boxes=boxes
-    )
+        config, params, skip_nonfinite=skip_nonfinite, intensity=intensity, boxes=boxes,
+        mount=mount, level_frame=level_frame,
+    )  # fmt: skip
+    if detector.mount != LidarMount():
+        print(f"indoorbev ros2 detect: lidar mount: "
+              f"{detector.mount.describe(config.sim.sensor_height)}", flush=True)  # fmt: skip
     compile_s = detector.warmup()
     hint = speed_hint(detector.inference_ms(), config.inference.views)
     if hint:

@@ -1,0 +1,118 @@
+"""How the lidar sits on the robot: clouds from a mount the model was not trained on.
+
+The simulator trains the model on a level lidar (no roll or pitch) between
+``sim.sensor_height`` metres above the floor (DESIGN section 2: x forward, y left, z up,
+origin at the sensor). A MID-360 is often pitched down, hung upside down or carried higher.
+``LidarMount`` maps such a cloud into the frame the model knows:
+
+- ``roll, pitch, yaw`` (degrees) are the lidar's orientation in a level frame, as in a URDF
+  joint's ``rpy`` (fixed axes: R = Rz(yaw) Ry(pitch) Rx(roll)); each point becomes R p. The
+  outputs are then in that level frame: origin at the lidar, z up, x along yaw 0.
+- ``height`` (metres above the floor), when outside the trained heights, lifts or lowers the
+  cloud so the floor lies where it did in training (the nearest trained height); the
+  outputs' z is moved back, so it stays relative to the lidar.
+
+Example::
+
+    mount = LidarMount(pitch=20.0, height=1.1)  # pitched 20 degrees down, 1.1 m up
+    level = mount.apply(points, trained_heights=(0.35, 0.8))  # [N, 4], z lifted 0.3 m
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class LidarMount:
+    """The lidar's orientation in a level frame (degrees) and height above the floor (m).
+
+    ``height=None`` leaves z as it is.
+    """
+
+    roll: float = 0.0
+    pitch: float = 0.0
+    yaw: float = 0.0
+    height: float | None = None
+
+    def __post_init__(self):
+        for name in ("roll", "pitch", "yaw"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"lidar mount {name}: expected degrees, got {getattr(self, name)}")
+        if self.height is not None and not (math.isfinite(self.height) and self.height >= 0):
+            raise ValueError(f"lidar height: expected metres >= 0, got {self.height}")
+
+    @property
+    def rotated(self) -> bool:
+        """Whether the outputs are in a frame other than the cloud's."""
+        return (self.roll, self.pitch, self.yaw) != (0.0, 0.0, 0.0)
+
+    def rotation(self) -> np.ndarray:
+        """float64 [3, 3]: R = Rz(yaw) Ry(pitch) Rx(roll), lidar-frame vectors to level."""
+        r, p, y = np.radians([self.roll, self.pitch, self.yaw])
+        rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
+        ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
+        rz = np.array([[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]])
+        return rz @ ry @ rx
+
+    def z_offset(self, trained_heights: tuple[float, float]) -> float:
+        """Metres added to z so the floor lies as it did in training: the height minus the
+        nearest trained height (0 without a height or within ``trained_heights``)."""
+        if self.height is None:
+            return 0.0
+        lo, hi = trained_heights
+        return float(self.height - min(max(self.height, lo), hi))
+
+    def levelled(self, points: np.ndarray) -> np.ndarray:
+        """float32 [N, 4]: ``points`` [N, 4] (x, y, z, intensity) rotated into the level
+        frame (no height move); intensity (and NaN) carried through."""
+        points = np.asarray(points, np.float32).reshape(-1, 4)
+        out = points.copy()
+        if self.rotated:
+            out[:, :3] = points[:, :3].astype(np.float64) @ self.rotation().T
+        return out
+
+    def apply(self, points: np.ndarray, trained_heights: tuple[float, float]) -> np.ndarray:
+        """float32 [N, 4]: ``levelled`` points shifted by ``z_offset``, as the model sees them."""
+        out = self.levelled(points)
+        out[:, 2] += self.z_offset(trained_heights)
+        return out
+
+    def describe(self, trained_heights: tuple[float, float]) -> str:
+        """One line for logs: what is done to the clouds."""
+        parts = []
+        if self.rotated:
+            rpy = f"roll {self.roll:g}, pitch {self.pitch:g}, yaw {self.yaw:g} deg"
+            parts.append(f"levelled (lidar at {rpy}); outputs in the level frame")
+        offset = self.z_offset(trained_heights)
+        if offset:
+            lo, hi = trained_heights
+            parts.append(
+                f"z {offset:+.3g} m (lidar {self.height:g} m above the floor, trained "
+                f"{lo:g}-{hi:g} m; output z moved back)"
+            )
+        return "; ".join(parts) or "as read (level lidar within the trained heights)"
+
+
+def check_level_frame(mount: LidarMount, level_frame: str | None) -> None:
+    """A levelled cloud's outputs are not in the cloud's frame: they need a frame id."""
+    if mount.rotated and not level_frame:
+        raise ValueError(
+            "--lidar-rpy levels the clouds, so the outputs are not in the cloud's frame: name "
+            "their frame with --level-frame (the lidar's origin with z up) and publish its "
+            "transform"
+        )
+
+
+def parse_rpy(text: str) -> tuple[float, float, float]:
+    """argparse helper: ``"ROLL,PITCH,YAW"`` in degrees."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ValueError(f"expected ROLL,PITCH,YAW in degrees, got {text!r}")
+    return values

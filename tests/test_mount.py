@@ -1,0 +1,169 @@
+"""LidarMount: levelling a tilted lidar's clouds and moving a sensor outside the trained heights."""
+
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from indoorbev_jax import predict as P
+from indoorbev_jax.cli import main as cli_main
+from indoorbev_jax.config import Config, InferenceConfig
+from indoorbev_jax.data.dataset import pad_points
+from indoorbev_jax.mount import LidarMount, parse_rpy
+from indoorbev_jax.train import init_state
+
+# Thresholds at 0 so that an untrained model still yields objects.
+CFG = dataclasses.replace(
+    Config.tiny(), inference=InferenceConfig(score_threshold=0.0, overlap_threshold=0.0)
+)
+TRAINED = CFG.sim.sensor_height
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    params = init_state(CFG, jax.random.key(0)).params
+    return P.export_model(params, CFG, tmp_path_factory.mktemp("model") / "tiny.msgpack")
+
+
+def _scan(n=600, seed=3):
+    """A level scan inside the tiny grid, clear of the sensor's blind zone."""
+    rng = np.random.default_rng(seed)
+    points = rng.uniform([-4, -4, -0.4, 0], [4, 4, 1.2, 1], (n, 4)).astype(np.float32)
+    return points[np.linalg.norm(points[:, :3], axis=1) > 0.5]
+
+
+def test_rotation_is_urdf_rpy():
+    rng = np.random.default_rng(0)
+    for roll, pitch, yaw in rng.uniform(-180, 180, (20, 3)):
+        expected = Rotation.from_euler("xyz", [roll, pitch, yaw], degrees=True).as_matrix()
+        got = LidarMount(roll, pitch, yaw).rotation()
+        np.testing.assert_allclose(got, expected, atol=1e-12)
+    # Positive pitch tips the lidar's nose down: what it sees 1 m ahead lies below it.
+    ahead = LidarMount(pitch=20.0).apply(np.array([[1.0, 0.0, 0.0, 0.5]]), TRAINED)[0]
+    np.testing.assert_allclose(ahead, [np.cos(np.radians(20)), 0, -np.sin(np.radians(20)), 0.5],
+                               atol=1e-6)  # fmt: skip
+    # Upside down (roll 180): its +z is the world's -z, its y the world's -y.
+    flipped = LidarMount(roll=180.0).apply(np.array([[1.0, 2.0, 3.0, 0.1]]), TRAINED)[0]
+    np.testing.assert_allclose(flipped, [1.0, -2.0, -3.0, 0.1], atol=1e-6)
+
+
+def test_height_offset_moves_the_floor_to_the_nearest_trained_height():
+    lo, hi = TRAINED
+    assert LidarMount().z_offset(TRAINED) == 0.0
+    assert LidarMount(height=(lo + hi) / 2).z_offset(TRAINED) == 0.0
+    assert LidarMount(height=hi + 0.4).z_offset(TRAINED) == pytest.approx(0.4)
+    assert LidarMount(height=lo / 2).z_offset(TRAINED) == pytest.approx(-lo / 2)
+    # The floor, -height in the lidar frame, lands at -hi after the move.
+    floor = LidarMount(height=1.5).apply(np.array([[2.0, 0.0, -1.5, 0.0]]), TRAINED)[0, 2]
+    assert floor == pytest.approx(-hi)
+    nan = LidarMount(pitch=10.0, height=1.5).apply(np.array([[np.nan, 0, 0, 0.3]]), TRAINED)
+    assert np.isnan(nan[0, :3]).all() and nan[0, 3] == pytest.approx(0.3)
+
+
+def test_bad_mounts_are_named():
+    with pytest.raises(ValueError, match="lidar height: expected metres >= 0"):
+        LidarMount(height=-1.0)
+    with pytest.raises(ValueError, match="lidar mount pitch"):
+        LidarMount(pitch=float("nan"))
+    assert parse_rpy("0,-20.5,90") == (0.0, -20.5, 90.0)
+    for bad in ("1,2", "a,b,c", "1,2,inf"):
+        with pytest.raises(ValueError, match="expected ROLL,PITCH,YAW"):
+            parse_rpy(bad)
+
+
+def test_blind_zone_follows_the_moved_sensor():
+    """A driver's (0, 0, 0) no-return point stays blind after the height move."""
+    grid = CFG.grid
+    cloud = np.array([[0.0, 0.0, 0.4, 0.0], [2.0, 0.0, 0.4, 0.0]], np.float32)
+    _, valid, counts = pad_points(cloud, grid, 4, 0.1, origin=(0.0, 0.0, 0.4))
+    assert counts["blind_points"] == 1 and valid.sum() == 1
+
+
+def test_tilted_scan_levelled_gives_the_level_scans_prediction(model_file):
+    config, params = P.load_model(model_file)
+    scan = _scan()
+    mount = LidarMount(roll=-3.0, pitch=25.0, yaw=30.0)
+    # The same scene seen by the tilted lidar: its points in the lidar's own frame.
+    tilted = scan.copy()
+    tilted[:, :3] = (scan[:, :3].astype(np.float64) @ mount.rotation()).astype(np.float32)
+    level = P.Predictor(config, params)
+    levelled = P.Predictor(config, params, mount=mount)
+    padded, valid, _ = levelled.prepare(tilted)
+    np.testing.assert_allclose(padded[valid], scan, atol=2e-6)
+    got = levelled.labels(*levelled.infer(padded, valid)[:2])
+    want = level.labels(*level.infer(*level.prepare(scan)[:2])[:2])
+    np.testing.assert_array_equal(got[1], want[1])  # segments
+    np.testing.assert_array_equal(got[0].classes, want[0].classes)
+    np.testing.assert_allclose(got[0].pos, want[0].pos, atol=1e-4)
+    # Not levelled, the tilted scan gives another answer: the mount matters.
+    raw = level.labels(*level.infer(*level.prepare(tilted)[:2])[:2])
+    assert not np.array_equal(raw[1], want[1])
+
+
+def test_high_lidar_is_moved_and_its_boxes_moved_back(model_file):
+    config, params = P.load_model(model_file)
+    scan = _scan()
+    offset = 0.5
+    high = P.Predictor(config, params, mount=LidarMount(height=TRAINED[1] + offset))
+    assert high.z_offset == pytest.approx(offset)
+    lifted = scan.copy()
+    lifted[:, 2] += np.float32(offset)
+    plain = P.Predictor(config, params)
+    got = high.labels(*high.infer(*high.prepare(scan)[:2])[:2])
+    want = plain.labels(*plain.infer(*plain.prepare(lifted)[:2])[:2])
+    assert len(want[0]) > 0
+    np.testing.assert_array_equal(got[1], want[1])
+    np.testing.assert_allclose(got[0].pos[:, :2], want[0].pos[:, :2], atol=1e-5)
+    np.testing.assert_allclose(got[0].pos[:, 2], want[0].pos[:, 2] - offset, atol=1e-5)
+
+
+def test_predict_records_the_mount_and_refuses_to_mix(model_file, tmp_path, capsys):
+    scan = tmp_path / "scan.bin"
+    _scan().tofile(scan)
+    out = tmp_path / "pred"
+    argv = ["predict", str(model_file), str(scan), "--out", str(out), "--no-pictures"]
+    assert cli_main([*argv, "--lidar-rpy", "0,15,0", "--lidar-height", "1.3"]) == 0
+    said = capsys.readouterr().out
+    assert "lidar mount: levelled (lidar at roll 0, pitch 15, yaw 0 deg)" in said
+    assert "z +0.5 m (lidar 1.3 m above the floor" in said
+    run = json.loads((out / "predict.json").read_text())
+    assert run["mount"] == {"roll": 0.0, "pitch": 15.0, "yaw": 0.0, "height": 1.3}
+    assert cli_main(argv) == 2  # the level run would mix its files with the tilted one's
+    assert "mount: {'roll': 0.0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli_main([*argv, "--lidar-rpy", "0,15"])
+    assert "--lidar-rpy: expected ROLL,PITCH,YAW in degrees" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli_main([*argv, "--lidar-height", "-2"])
+    assert "--lidar-height: expected metres >= 0" in capsys.readouterr().err
+
+
+def test_bag_out_of_a_levelled_run_shares_the_level_frame(model_file, tmp_path):
+    from rosbags.rosbag2 import Reader
+
+    from indoorbev_jax.rosbag import markers_to_labels, pointcloud2_to_points, typestore
+
+    scan = tmp_path / "scan.bin"
+    tilted = _scan()
+    tilted.tofile(scan)
+    mount = LidarMount(roll=5.0, pitch=-30.0, height=1.0)
+    run = dict(pictures=False, verbose=False, mount=mount)
+    with pytest.raises(ValueError, match="name their frame with --level-frame"):
+        P.predict(model_file, scan, tmp_path / "o", bag_out=tmp_path / "bag", **run)
+    P.predict(model_file, scan, tmp_path / "o", bag_out=tmp_path / "bag", level_frame="lvl", **run)
+    ts, msgs = typestore(), {}
+    with Reader(tmp_path / "bag") as reader:
+        for conn, _, raw in reader.messages():
+            msgs[conn.topic] = ts.deserialize_cdr(raw, conn.msgtype)
+    cloud, markers = msgs["/points"], msgs["/detections"]
+    assert cloud.header.frame_id == "lvl"
+    assert {m.header.frame_id for m in markers.markers} == {"lvl"}
+    # The cloud levelled but not moved in height; the boxes are the label file's.
+    want = tilted.copy()
+    want[:, :3] = tilted[:, :3].astype(np.float64) @ mount.rotation().T
+    np.testing.assert_allclose(pointcloud2_to_points(cloud), want, atol=1e-6)
+    labels = P.kitti.read_labels(tmp_path / "o" / "label_2" / "scan.txt", CFG.data)
+    np.testing.assert_allclose(markers_to_labels(markers, CFG.data).pos, labels.pos, atol=1e-6)
