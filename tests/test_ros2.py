@@ -527,6 +527,9 @@ def test_levelled_clouds_publish_in_the_level_frame(model, capsys):
     assert err.startswith("indoorbev ros2 detect: error: --lidar-rpy levels the clouds")
     assert err.count("\n") == 1
     levelled = Detector(CFG, model[1], TS, mount=mount, level_frame="lidar_level")
+    # The warm-up cloud is placed in the level frame: pointing up from 2 m, it still counts.
+    upward = LidarMount(pitch=-90.0, height=2.0)
+    assert Detector(CFG, model[1], TS, mount=upward, level_frame="up").inference_ms() > 0
     tilted = _scan()
     tilted[:, :3] = (tilted[:, :3].astype(np.float64) @ mount.rotation()).astype(np.float32)
     msgs = _decode(levelled.process(_raw_cloud(tilted)))

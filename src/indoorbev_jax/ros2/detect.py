@@ -122,10 +122,13 @@ class Detector:
 
     def _dummy(self) -> bytes:
         # One valid point, so the model runs: three quarters along x, clear of the sensor's
-        # blind zone (sim.min_range), where (0, 0, 0) would be skipped.
+        # blind zone (sim.min_range), where (0, 0, 0) would be skipped; placed there in the
+        # level frame, so sent in the lidar's (the mount's inverse).
         g = self.config.grid
-        point = [g.x_range[0] + 0.75 * (g.x_range[1] - g.x_range[0]), sum(g.y_range) / 2,
-                 sum(g.z_range) / 2, 0.5]  # fmt: skip
+        level = np.array([g.x_range[0] + 0.75 * (g.x_range[1] - g.x_range[0]),
+                          sum(g.y_range) / 2, sum(g.z_range) / 2])  # fmt: skip
+        level[2] -= self.predictor.z_offset
+        point = [*(self.mount.rotation().T @ level), 0.5]
         cloud = cloud_msg(self.ts, np.asarray([point], np.float32), 0, "warmup")
         return bytes(self.ts.serialize_cdr(cloud, POINTCLOUD2))
 
