@@ -96,6 +96,14 @@ def frame_tags(targets, info) -> dict[str, np.ndarray]:
     }
 
 
+def model_input(points, valid, grid, intensity_factor: float = 1.0, z_offset: float = 0.0):
+    """Simulated ``points [..., N, 4]`` and ``valid [..., N]`` as the model sees them: the
+    intensity times ``intensity_factor``, z moved by ``z_offset`` (what ``predict``'s
+    ``--lidar-height`` does) and the points it moves out of the workspace left out."""
+    points = points.at[..., 3].multiply(intensity_factor).at[..., 2].add(z_offset)
+    return points, valid & in_workspace(points, grid)
+
+
 def evaluate_sim(config, params, split: str, frames: int, batch: int, seed: int, progress=True):
     """An ``Evaluator`` holding ``params``' outputs on ``frames`` simulated frames of ``split``.
 
@@ -153,8 +161,7 @@ def evaluate_sim_sweep(
 
     @jax.jit
     def predict(params, points, valid):
-        points = points.at[..., 3].multiply(intensity_factor).at[..., 2].add(z_offset)
-        valid = valid & in_workspace(points, config.grid)  # as pad_points would judge them
+        points, valid = model_input(points, valid, config.grid, intensity_factor, z_offset)
         predictions = apply_views(model, params, points, valid, inferences[0])
         return tuple(panoptic_inference(predictions, inference) for inference in inferences)
 

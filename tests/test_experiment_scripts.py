@@ -391,3 +391,25 @@ def test_pose_errors_of_the_true_boxes_are_zero_and_pairs_are_by_mask():
     table = pose.summary(errors, ["a", "b", "c", "d"])
     assert table["all"]["matched"] == 2 and table["a"]["matched"] == 1 and "b" not in table
     assert table["all p90"]["centre"] == 0.0 and table["all p90"]["matched"] == 2
+
+
+def test_eval_sim_z_offset_is_what_predict_does_for_a_lidar_height():
+    """eval_sim --z-offset D measures predict --lidar-height H (D = H - nearest trained)."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from indoorbev_jax.mount import LidarMount
+    from indoorbev_jax.predict import Predictor
+
+    eval_sim = _script("eval_sim")
+    cfg = Config.tiny()
+    rng = np.random.default_rng(0)
+    cloud = rng.uniform([-4, -4, -1.2, 0], [4, 4, 3.0, 1], (500, 4)).astype(np.float32)
+    cloud = cloud[np.linalg.norm(cloud[:, :3], axis=1) > 0.5]  # clear of the blind zone
+    mount = LidarMount(height=cfg.sim.sensor_height[1] + 0.5)
+    predictor = Predictor(cfg, None, intensity="unit", mount=mount)
+    padded, valid, counts = predictor.prepare(cloud)
+    assert counts["outside_points"] > 0  # the move pushes the top of the cloud out
+    points, kept = eval_sim.model_input(jnp.asarray(cloud), jnp.ones(len(cloud), bool), cfg.grid,
+                                        z_offset=predictor.z_offset)  # fmt: skip
+    np.testing.assert_allclose(np.asarray(points)[np.asarray(kept)], padded[valid], atol=1e-6)

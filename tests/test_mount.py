@@ -63,6 +63,16 @@ def test_height_offset_moves_the_floor_to_the_nearest_trained_height():
     assert np.isnan(nan[0, :3]).all() and nan[0, 3] == pytest.approx(0.3)
 
 
+def test_full_turns_and_inf_points_are_no_rotation_and_no_warning():
+    assert not LidarMount(yaw=360.0).rotated and not LidarMount(roll=-0.0).rotated
+    assert LidarMount(yaw=1e-3).rotated
+    with np.errstate(all="raise"):  # an Inf coordinate is invalid, not a warning
+        out = LidarMount(pitch=10.0).levelled(np.array([[np.inf, 0, 0, 0.2]], np.float32))
+    assert not np.isfinite(out[0, :3]).all()
+    assert LidarMount(pitch=20.0).radians_hint() is None
+    assert LidarMount(pitch=0.349).radians_hint().endswith("pass 0,20,0")
+
+
 def test_bad_mounts_are_named():
     with pytest.raises(ValueError, match="lidar height: expected metres >= 0"):
         LidarMount(height=-1.0)
@@ -130,7 +140,7 @@ def test_predict_records_the_mount_and_refuses_to_mix(model_file, tmp_path, caps
     assert "lidar mount: levelled (lidar at roll 0, pitch 15, yaw 0 deg)" in said
     assert "z +0.5 m (lidar 1.3 m above the floor" in said
     run = json.loads((out / "predict.json").read_text())
-    assert run["mount"] == {"roll": 0.0, "pitch": 15.0, "yaw": 0.0, "height": 1.3}
+    assert run["mount"] == {"roll": 0.0, "pitch": 15.0, "yaw": 0.0, "z_offset": pytest.approx(0.5)}
     assert cli_main(argv) == 2  # the level run would mix its files with the tilted one's
     assert "mount: {'roll': 0.0" in capsys.readouterr().err
     with pytest.raises(SystemExit):
@@ -139,6 +149,17 @@ def test_predict_records_the_mount_and_refuses_to_mix(model_file, tmp_path, caps
     with pytest.raises(SystemExit):
         cli_main([*argv, "--lidar-height", "-2"])
     assert "--lidar-height: expected metres >= 0" in capsys.readouterr().err
+    # A mount that changes nothing is no other run: a level lidar within the trained heights.
+    level = ["predict", str(model_file), str(scan), "--out", str(tmp_path / "lvl"), "--no-pictures"]
+    assert cli_main([*level, "--lidar-height", "0.5", "--lidar-rpy", "0,0,360"]) == 0
+    assert "mount" not in json.loads((tmp_path / "lvl" / "predict.json").read_text())
+    assert cli_main(level) == 0
+    assert "1 frames were done by an earlier run" in capsys.readouterr().out
+    assert cli_main([*level, "--level-frame", "lvl"]) == 2
+    assert "--level-frame 'lvl' without a --lidar-rpy rotation" in capsys.readouterr().err
+    # A URDF's radians given as degrees are pointed out.
+    assert cli_main([*argv, "--lidar-rpy", "0,0.349,0", "--overwrite"]) == 0
+    assert "if these are a URDF's radians, pass 0,20,0" in capsys.readouterr().err
 
 
 def test_bag_out_of_a_levelled_run_shares_the_level_frame(model_file, tmp_path):

@@ -520,6 +520,8 @@ def test_levelled_clouds_publish_in_the_level_frame(model, capsys):
     mount = LidarMount(pitch=20.0, height=1.2)
     with pytest.raises(ValueError, match="name their frame with --level-frame"):
         Detector(CFG, model[1], TS, mount=mount)
+    with pytest.raises(ValueError, match="outputs stay in the cloud's frame"):
+        Detector(CFG, model[1], TS, mount=LidarMount(height=1.2), level_frame="lvl")
     with pytest.raises(ValueError, match="name their frame with --level-frame"):
         detect.run_detect_node("no-such-model", mount=mount)  # before the model loads
     assert cli.main(["ros2", "detect", "--checkpoint", "m", "--lidar-rpy", "0,20,0"]) == 2

@@ -47,8 +47,8 @@ class LidarMount:
 
     @property
     def rotated(self) -> bool:
-        """Whether the outputs are in a frame other than the cloud's."""
-        return (self.roll, self.pitch, self.yaw) != (0.0, 0.0, 0.0)
+        """Whether the outputs are in a frame other than the cloud's (yaw 360 is not)."""
+        return not np.allclose(self.rotation(), np.eye(3), rtol=0.0, atol=1e-12)
 
     def rotation(self) -> np.ndarray:
         """float64 [3, 3]: R = Rz(yaw) Ry(pitch) Rx(roll), lidar-frame vectors to level."""
@@ -72,7 +72,8 @@ class LidarMount:
         points = np.asarray(points, np.float32).reshape(-1, 4)
         out = points.copy()
         if self.rotated:
-            out[:, :3] = points[:, :3].astype(np.float64) @ self.rotation().T
+            with np.errstate(invalid="ignore"):  # an Inf coordinate: NaN, invalid anyway
+                out[:, :3] = points[:, :3].astype(np.float64) @ self.rotation().T
         return out
 
     def apply(self, points: np.ndarray, trained_heights: tuple[float, float]) -> np.ndarray:
@@ -96,14 +97,39 @@ class LidarMount:
             )
         return "; ".join(parts) or "as read (level lidar within the trained heights)"
 
+    def effect(self, trained_heights: tuple[float, float]) -> dict[str, float]:
+        """What the mount does to the outputs, for a run's record: the angles when it
+        rotates, ``z_offset`` when it moves; empty when the clouds are read as they are."""
+        done = {"roll": self.roll, "pitch": self.pitch, "yaw": self.yaw} if self.rotated else {}
+        if offset := self.z_offset(trained_heights):
+            done["z_offset"] = offset
+        return done
+
+    def radians_hint(self) -> str | None:
+        """A note when the angles look like radians (a URDF's rpy) given as degrees."""
+        angles = [a for a in (self.roll, self.pitch, self.yaw) if a]
+        if angles and all(abs(a) <= math.pi for a in angles) and any(a % 1 for a in angles):
+            deg = ",".join(f"{math.degrees(a):.4g}" for a in (self.roll, self.pitch, self.yaw))
+            return (
+                f"--lidar-rpy is in degrees: {self.roll:g},{self.pitch:g},{self.yaw:g} is a "
+                f"tilt of under 4 degrees; if these are a URDF's radians, pass {deg}"
+            )
+        return None
+
 
 def check_level_frame(mount: LidarMount, level_frame: str | None) -> None:
-    """A levelled cloud's outputs are not in the cloud's frame: they need a frame id."""
+    """A levelled cloud's outputs are not in the cloud's frame: they need a frame id; a
+    cloud that is not rotated keeps its own, so a level frame would name a wrong one."""
     if mount.rotated and not level_frame:
         raise ValueError(
             "--lidar-rpy levels the clouds, so the outputs are not in the cloud's frame: name "
-            "their frame with --level-frame (the lidar's origin with z up) and publish its "
-            "transform"
+            "their frame with --level-frame (the lidar's origin with the robot's level axes) "
+            "and publish its transform"
+        )
+    if level_frame and not mount.rotated:
+        raise ValueError(
+            f"--level-frame {level_frame!r} without a --lidar-rpy rotation: the outputs stay "
+            "in the cloud's frame and keep its id; drop --level-frame"
         )
 
 

@@ -515,7 +515,7 @@ def predict(
     intensity_factor(intensity, np.zeros((0, 4), np.float32))  # bad units fail first
     check_box_source(boxes)
     mount = mount if mount is not None else LidarMount()
-    if bag_out is not None:
+    if bag_out is not None or level_frame:
         check_level_frame(mount, level_frame)
     config, params = load_model(model_path)
     fingerprint = model_fingerprint(config, params)  # the model file's, before --views
@@ -543,18 +543,23 @@ def predict(
         "views": list(config.inference.views),
         "boxes": boxes,
     }
-    if mount != LidarMount():  # older folders have no "mount" entry: level, as before
-        run["mount"] = dataclasses.asdict(mount)
+    if effect := mount.effect(config.sim.sensor_height):  # none: as older runs read clouds
+        run["mount"] = effect
     _prepare_out(out, run, overwrite)
     predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity, mount)
     grid = config.grid
-    workspace = f"x {list(grid.x_range)}, y {list(grid.y_range)}, z {list(grid.z_range)} m"
+    z_range = [z - predictor.z_offset for z in grid.z_range]  # in the cloud's height
+    workspace = f"x {list(grid.x_range)}, y {list(grid.y_range)}, z {z_range} m"
+    if mount.rotated:
+        workspace += " in the level frame (--lidar-rpy)"
     summary = {"frames": 0, "objects": 0, "thinned_frames": 0, "resumed_frames": 0,
                "bad_frames": [], "empty_frames": []}  # fmt: skip
     latencies, compiled, factors_said = [], [], set()
     say = functools.partial(print, flush=True) if verbose else (lambda *a, **k: None)
     if mount != LidarMount():
         say(f"lidar mount: {mount.describe(config.sim.sensor_height)}")
+    if hint := mount.radians_hint():
+        print(f"note: {hint}", file=sys.stderr, flush=True)
     started = time.perf_counter()
 
     def run_frames():

@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import statistics
+import sys
 import threading
 import time
 from collections import deque
@@ -320,6 +321,8 @@ def run_detect_node(
     if detector.mount != LidarMount():
         print(f"indoorbev ros2 detect: lidar mount: "
               f"{detector.mount.describe(config.sim.sensor_height)}", flush=True)  # fmt: skip
+    if hint := detector.mount.radians_hint():
+        print(f"indoorbev ros2 detect: note: {hint}", file=sys.stderr, flush=True)
     compile_s = detector.warmup()
     hint = speed_hint(detector.inference_ms(), config.inference.views)
     if hint:
