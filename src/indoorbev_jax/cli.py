@@ -182,8 +182,9 @@ def add_mount_arguments(parser: argparse.ArgumentParser) -> None:
         type=_rpy,
         default=(0.0, 0.0, 0.0),
         metavar="ROLL,PITCH,YAW",
-        help="the lidar's orientation on the robot in degrees (URDF rpy), for a tilted mount: "
-        "clouds are levelled first and the outputs are in that level frame (default 0,0,0)",
+        help="the lidar's orientation on the robot in degrees (a URDF's rpy, which is in "
+        "radians, fixed axes), for a tilted mount: clouds are levelled first and the outputs "
+        "are in that level frame (default 0,0,0)",
     )
     parser.add_argument(
         "--lidar-height",
