@@ -166,13 +166,12 @@ def _rpy(text: str) -> tuple[float, float, float]:
 
 
 def _height(text: str) -> float:
+    from indoorbev_jax.mount import parse_height
+
     try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"expected metres >= 0, got {text!r}")
-    return value
+        return parse_height(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def add_mount_arguments(parser: argparse.ArgumentParser) -> None:

@@ -42,7 +42,7 @@ class LidarMount:
         for name in ("roll", "pitch", "yaw"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"lidar mount {name}: expected degrees, got {getattr(self, name)}")
-        if self.height is not None and not (math.isfinite(self.height) and self.height >= 0):
+        if self.height is not None and not _is_height(self.height):
             raise ValueError(f"lidar height: expected metres >= 0, got {self.height}")
 
     @property
@@ -117,6 +117,13 @@ class LidarMount:
         return None
 
 
+LEVEL = LidarMount()  # a level lidar read as it is: the default everywhere
+
+
+def _is_height(value: float) -> bool:
+    return math.isfinite(value) and value >= 0
+
+
 def check_level_frame(mount: LidarMount, level_frame: str | None) -> None:
     """A levelled cloud's outputs are not in the cloud's frame: they need a frame id; a
     cloud that is not rotated keeps its own, so a level frame would name a wrong one."""
@@ -142,3 +149,14 @@ def parse_rpy(text: str) -> tuple[float, float, float]:
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise ValueError(f"expected ROLL,PITCH,YAW in degrees, got {text!r}")
     return values
+
+
+def parse_height(text: str) -> float:
+    """argparse helper: the lidar's height above the floor, metres >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not _is_height(value):
+        raise ValueError(f"expected metres >= 0, got {text!r}")
+    return value

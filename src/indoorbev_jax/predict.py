@@ -38,7 +38,7 @@ from indoorbev_jax.data.dataset import pad_points
 from indoorbev_jax.geometry import wrap_angle
 from indoorbev_jax.inference import apply_views, panoptic_inference, unview_cells
 from indoorbev_jax.models import IndoorBEV
-from indoorbev_jax.mount import LidarMount, check_level_frame
+from indoorbev_jax.mount import LEVEL, LidarMount, check_level_frame
 
 MODEL_FORMAT = "indoorbev_jax-model-v1"
 
@@ -277,12 +277,12 @@ class Predictor:
         config: Config,
         params: Any,
         intensity: str | float = "auto",
-        mount: LidarMount | None = None,
+        mount: LidarMount = LEVEL,
     ):
         self.config = config
         self.params = params
-        self.mount = mount if mount is not None else LidarMount()
-        self.z_offset = self.mount.z_offset(config.sim.sensor_height)
+        self.mount = mount
+        self.z_offset = mount.z_offset(config.sim.sensor_height)
         intensity_factor(intensity, np.zeros((0, 4), np.float32))  # bad units fail here
         self.intensity = intensity
         self.last_counts: dict[str, int] = {}
@@ -475,7 +475,7 @@ def predict(
     skip_bad_frames: bool = False,
     overwrite: bool = False,
     boxes: str = "mask",
-    mount: LidarMount | None = None,
+    mount: LidarMount = LEVEL,
     level_frame: str | None = None,
 ) -> dict:
     """Runs the model over INPUT and writes labels, masks, pictures (and a bag).
@@ -499,10 +499,10 @@ def predict(
         ``"mask"``, the rectangle around each object's segment (the default: several times
         closer to the true box on the simulated test set, docs/RESULTS.md), or ``"head"``,
         the regressed box.
-      mount: how the lidar sits (``mount.LidarMount``; None: level, within the trained
-        heights); with a rotation, every output is in its level frame, and ``bag_out``
-        writes the levelled clouds with the detections under ``level_frame`` (then
-        required) as their frame id.
+      mount: how the lidar sits (``mount.LidarMount``; default level, read as it is);
+        with a rotation, every output is in its level frame, and ``bag_out`` writes the
+        levelled clouds with the detections under ``level_frame`` (then required) as their
+        frame id.
 
     Returns:
       ``{"frames", "latency_ms": {"median", "p90", "max"}, "objects", "thinned_frames",
@@ -514,7 +514,6 @@ def predict(
     """
     intensity_factor(intensity, np.zeros((0, 4), np.float32))  # bad units fail first
     check_box_source(boxes)
-    mount = mount if mount is not None else LidarMount()
     if bag_out is not None or level_frame:
         check_level_frame(mount, level_frame)
     config, params = load_model(model_path)
@@ -556,7 +555,7 @@ def predict(
                "bad_frames": [], "empty_frames": []}  # fmt: skip
     latencies, compiled, factors_said = [], [], set()
     say = functools.partial(print, flush=True) if verbose else (lambda *a, **k: None)
-    if mount != LidarMount():
+    if mount != LEVEL:
         say(f"lidar mount: {mount.describe(config.sim.sensor_height)}")
     if hint := mount.radians_hint():
         print(f"note: {hint}", file=sys.stderr, flush=True)

@@ -29,7 +29,7 @@ import numpy as np
 
 from indoorbev_jax.boxes import check_box_source
 from indoorbev_jax.data import kitti
-from indoorbev_jax.mount import LidarMount, check_level_frame
+from indoorbev_jax.mount import LEVEL, LidarMount, check_level_frame
 from indoorbev_jax.predict import Predictor, load_model, with_thresholds
 from indoorbev_jax.ros2 import messages as M
 from indoorbev_jax.rosbag import (
@@ -96,11 +96,11 @@ class Detector:
 
     def __init__(
         self, config, params, ts=None, skip_nonfinite: bool = False, intensity="auto",
-        boxes: str = "mask", mount: LidarMount | None = None, level_frame: str | None = None,
+        boxes: str = "mask", mount: LidarMount = LEVEL, level_frame: str | None = None,
     ):  # fmt: skip
         check_box_source(boxes)
-        self.mount = mount if mount is not None else LidarMount()
-        check_level_frame(self.mount, level_frame)
+        check_level_frame(mount, level_frame)
+        self.mount = mount
         self.level_frame = level_frame or None
         self.config = config
         self.boxes = boxes
@@ -273,7 +273,7 @@ def run_detect_node(
     intensity: str | float = "auto",
     views: tuple[str, ...] | None = None,
     boxes: str = "mask",
-    mount: LidarMount | None = None,
+    mount: LidarMount = LEVEL,
     level_frame: str | None = None,
 ) -> dict:
     """Runs the detect node until Ctrl-C / SIGTERM (or ``max_frames`` processed frames).
@@ -295,8 +295,7 @@ def run_detect_node(
       views: test-time views (``config.VIEWS``; None: the model file's ``inference.views``).
       boxes: ``"mask"`` (boxes fitted to the masks) or ``"head"`` (regressed), as for
         ``predict.to_labels``.
-      mount: how the lidar sits (``mount.LidarMount``; None: level, within the trained
-        heights).
+      mount: how the lidar sits (``mount.LidarMount``; default level, read as it is).
       level_frame: frame id of the outputs, required when ``mount`` rotates the clouds.
 
     Returns:
@@ -305,7 +304,7 @@ def run_detect_node(
     from indoorbev_jax.ros2 import runtime
 
     out_topics = check_settings(topic, out_ns, log_every, max_frames)
-    check_level_frame(mount if mount is not None else LidarMount(), level_frame)
+    check_level_frame(mount, level_frame)
     runtime.require_rclpy()
     runtime.check_ros_args(ros_args)
     if record:  # before the slow warm-up
@@ -318,10 +317,10 @@ def run_detect_node(
         config, params, skip_nonfinite=skip_nonfinite, intensity=intensity, boxes=boxes,
         mount=mount, level_frame=level_frame,
     )  # fmt: skip
-    if detector.mount != LidarMount():
+    if mount != LEVEL:
         print(f"indoorbev ros2 detect: lidar mount: "
-              f"{detector.mount.describe(config.sim.sensor_height)}", flush=True)  # fmt: skip
-    if hint := detector.mount.radians_hint():
+              f"{mount.describe(config.sim.sensor_height)}", flush=True)  # fmt: skip
+    if hint := mount.radians_hint():
         print(f"indoorbev ros2 detect: note: {hint}", file=sys.stderr, flush=True)
     compile_s = detector.warmup()
     hint = speed_hint(detector.inference_ms(), config.inference.views)
