@@ -84,6 +84,15 @@ def test_bad_mounts_are_named():
             parse_rpy(bad)
 
 
+def test_empty_and_all_nan_clouds_leave_nothing_valid(model_file):
+    config, params = P.load_model(model_file)
+    predictor = P.Predictor(config, params, mount=LidarMount(pitch=30.0, height=1.4))
+    for cloud in (np.zeros((0, 4), np.float32), np.full((5, 4), np.nan, np.float32)):
+        padded, valid, counts = predictor.prepare(cloud)
+        assert padded.shape == (config.data.max_points, 4) and not valid.any()
+        assert counts["nonfinite_points"] == len(cloud)
+
+
 def test_blind_zone_follows_the_moved_sensor():
     """A driver's (0, 0, 0) no-return point stays blind after the height move."""
     grid = CFG.grid
@@ -141,6 +150,9 @@ def test_predict_records_the_mount_and_refuses_to_mix(model_file, tmp_path, caps
     assert "z +0.5 m (lidar 1.3 m above the floor" in said
     run = json.loads((out / "predict.json").read_text())
     assert run["mount"] == {"roll": 0.0, "pitch": 15.0, "yaw": 0.0, "z_offset": pytest.approx(0.5)}
+    mounted = [*argv, "--lidar-rpy", "0,15,0", "--lidar-height", "1.3"]
+    assert cli_main(mounted) == 0  # the same command after a kill resumes
+    assert "1 frames were done by an earlier run" in capsys.readouterr().out
     assert cli_main(argv) == 2  # the level run would mix its files with the tilted one's
     assert "mount: {'roll': 0.0" in capsys.readouterr().err
     with pytest.raises(SystemExit):
