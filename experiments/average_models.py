@@ -3,7 +3,9 @@
 A uniform "model soup" of runs continued from one common model (``train.py --init-from``):
 their average usually validates better than each, at no inference cost. Check it on the
 validation split (``experiments/eval_sim.py --split val``) before shipping it. The config
-(thresholds included) is the first model's unless set here.
+(thresholds included) is the first model's unless set here, but for the lidar heights
+(``sim.sensor_height``): the span of all the models' heights. Models trained for different
+lidar tilts (``sim.sensor_rpy``) are refused.
 """
 
 from __future__ import annotations
@@ -35,7 +37,8 @@ def main(argv=None) -> None:
     count = sum(math.prod(x.shape) for x in jax.tree.leaves(params))
     print(f"average of {len(args.models)} models ({count:,} parameters, score threshold "
           f"{config.inference.score_threshold}, mask threshold "
-          f"{config.inference.mask_threshold}) -> {path} "
+          f"{config.inference.mask_threshold}, lidar heights "
+          "{:g}-{:g} m) -> ".format(*config.sim.sensor_height) + f"{path} "
           f"({path.stat().st_size / 2**20:.1f} MiB)")  # fmt: skip
 
 

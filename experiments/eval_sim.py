@@ -31,6 +31,11 @@ under ``"sweep"``). Pick thresholds on
 Test-time views: ``--views all`` (or a comma list of ``config.VIEWS`` names) runs the model on the
 mirrored and rotated clouds and fuses the outputs (``inference.apply_views``); the default
 is the model file's ``inference.views``.
+A mount other than the trained one: ``--sensor-height`` simulates the lidar at other heights
+(``--z-offset`` then moves the cloud as predict's ``--lidar-height`` does) and ``--lidar-rpy``
+simulates it tilted (``sim.sensor_rpy``): the model sees the tilted lidar's returns levelled,
+as predict's ``--lidar-rpy`` feeds them.
+
 The numbers are measured on simulated data: they are not the paper's real-world measurement.
 """
 
@@ -47,7 +52,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from indoorbev_jax.cli import add_views_argument
+from indoorbev_jax.cli import add_views_argument, rpy_argument
 from indoorbev_jax.config import ConfigError, InferenceConfig
 from indoorbev_jax.evaluate import report
 from indoorbev_jax.geometry import in_workspace
@@ -253,6 +258,15 @@ def main(argv=None) -> None:
         help="add this to every point's z before the model sees it, metres (what predict's "
         "--lidar-height does for a sensor outside the trained heights)",
     )
+    p.add_argument(
+        "--lidar-rpy",
+        type=rpy_argument,
+        default=None,
+        metavar="ROLL,PITCH,YAW",
+        help="simulate the lidar tilted, degrees in the level frame (URDF rpy: pitch 20 is "
+        "nose down); the model gets the cloud levelled, as predict's --lidar-rpy gives it "
+        "(default: the model's sim.sensor_rpy)",
+    )
     add_views_argument(p, "the model's")
     p.add_argument(
         "--view-iou", type=float, default=None, help="inference.view_iou (default: the model's)"
@@ -273,6 +287,9 @@ def main(argv=None) -> None:
             sim = dataclasses.replace(config.sim, sensor_height=heights)
         except ConfigError as e:
             p.error(f"--sensor-height: {e}")
+        config = dataclasses.replace(config, sim=sim)
+    if args.lidar_rpy is not None:
+        sim = dataclasses.replace(config.sim, sensor_rpy=args.lidar_rpy)
         config = dataclasses.replace(config, sim=sim)
     scores = args.score_threshold or (config.inference.score_threshold,)
     masks = args.mask_threshold or (config.inference.mask_threshold,)
@@ -304,6 +321,7 @@ def main(argv=None) -> None:
     setup = {"model": str(args.model), "split": args.split, "frames": args.frames,
              "seed": args.seed, "intensity_factor": args.intensity_factor,
              "sensor_height": list(config.sim.sensor_height), "z_offset": args.z_offset,
+             "sensor_rpy": list(config.sim.sensor_rpy),
              "views": list(inferences[0].views), "view_iou": inferences[0].view_iou}  # fmt: skip
     sweep = []
     for inference, evaluator in zip(inferences, evaluators, strict=True):
@@ -322,6 +340,8 @@ def main(argv=None) -> None:
         head += ", sensor height {:g}-{:g} m".format(*config.sim.sensor_height)
     if args.z_offset:
         head += f", z {args.z_offset:+g} m"
+    if any(config.sim.sensor_rpy):
+        head += ", lidar tilted roll {:g}, pitch {:g}, yaw {:g} deg".format(*config.sim.sensor_rpy)
     if inferences[0].views != ("identity",):
         head += f", {len(inferences[0].views)} views fused at IoU {inferences[0].view_iou:g}"
     seconds = f"{time.perf_counter() - start:.0f} s"

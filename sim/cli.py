@@ -25,6 +25,7 @@ from indoorbev_jax.cli import (
     nonnegative_int,
     positive_float,
     positive_int,
+    rpy_argument,
     seed_int,
 )
 from indoorbev_jax.config import Config
@@ -110,6 +111,16 @@ def main(argv: list[str] | None = None) -> int:
     pb.add_argument("--topic", default="/lidar/points", help="PointCloud2 topic")
     pb.add_argument("--objects-topic", default="/lidar/objects", help="ground-truth MarkerArray")
     pb.add_argument("--frame-id", default="lidar")
+    pb.add_argument("--lidar-rpy", type=rpy_argument, default=(0.0, 0.0, 0.0),
+                    metavar="ROLL,PITCH,YAW",
+                    help="simulate the lidar tilted, degrees in the robot's level frame (a "
+                    "URDF's rpy: pitch 20 is nose down), and publish its clouds in its own "
+                    "frame (--frame-id); the ground truth goes out in --level-frame")  # fmt: skip
+    pb.add_argument(
+        "--level-frame",
+        default=None,
+        help="frame id of the ground truth with --lidar-rpy (its level frame)",
+    )
     pb.add_argument("--seed", type=seed_int, default=0)
     pb.add_argument("--split", default="test", choices=("train", "val", "test"))
     pb.add_argument("--record", default=None, help="record what is published into this bag")
@@ -155,7 +166,8 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 publish(cfg, args.rate, args.frames, args.topic, args.objects_topic,
                         args.frame_id, args.seed, args.split, args.record, args.storage,
-                        args.wait_subscribers, args.wait_timeout, args.ros_args)  # fmt: skip
+                        args.wait_subscribers, args.wait_timeout, args.ros_args,
+                        args.lidar_rpy, args.level_frame)  # fmt: skip
             except RosUnavailable as e:
                 print(f"indoorbev-sim: error: {e}", file=sys.stderr)
                 return 2

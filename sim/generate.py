@@ -6,7 +6,8 @@
 
 One call samples B scenes (``scenes.sample_scene``), poses them at the frame time, casts the
 scan pattern's rays from the lidar riding its robot (``sensor.scan``: Warp kernels over the
-batched MJX model/data), adds noise and dropout, and derives labels (``labels``): padded
+batched MJX model/data; a lidar tilted by ``sim.sensor_rpy`` delivers its cloud levelled,
+``mount_rotation``), adds noise and dropout, and derives labels (``labels``): padded
 targets with true-shape footprint masks and instance ids. ``FrameInfo`` carries what the
 ``Batch`` has no room for: per-object point counts, visibility and KITTI occlusion level,
 which object each point belongs to, the plan and the sensor pose.
@@ -49,7 +50,8 @@ class FrameInfo:
       point_object: int32 [B, N], target index of the object each point hit (-1: background
         or an object that is not a target).
       plan: int32 [B], floor-plan id (``layouts.plan_name``).
-      sensor_origin: float32 [B, 3] world position; sensor_yaw: float32 [B].
+      sensor_origin: float32 [B, 3] world position; sensor_yaw: float32 [B] (the level
+        frame's; the lidar's tilt in it is ``config.sim.sensor_rpy``).
       time: float32 [B], seconds since the start of the sequence.
       frame_index: int32 [B], scan pattern frame.
       scene: the ``scenes.Scene`` [B] the frame shows (posed at ``time``).
@@ -144,6 +146,15 @@ def _yaw_matrix(yaw: jax.Array) -> jax.Array:
     )  # [..., 3, 3]
 
 
+def mount_rotation(sim: SimConfig) -> np.ndarray | None:
+    """float32 [3, 3], lidar-frame vectors to the level frame (``sim.sensor_rpy``, with
+    ``indoorbev_jax.mount.LidarMount``'s convention); None for a level lidar."""
+    from indoorbev_jax.mount import LidarMount
+
+    mount = LidarMount(*sim.sensor_rpy)
+    return mount.rotation().astype(np.float32) if mount.rotated else None
+
+
 def simulate(
     key: jax.Array, config: Config, scene: scenes_mod.Scene, time: jax.Array, frame_index
 ) -> tuple[Batch, FrameInfo]:
@@ -168,13 +179,18 @@ def simulate(
     model = scenes_mod.geom_model(tpl, size)  # geom_size [B, G, 3]: one model per scene
     data = scenes_mod.GeomData(geom_xpos=xpos, geom_xmat=xmat)
     origin, heading = jax.vmap(scenes_mod.sensor_pose)(scene, time)  # [B, 3], [B]
-    pose = sensor.Pose(origin, _yaw_matrix(heading))
+    tilt = mount_rotation(sim)
+    rot = _yaw_matrix(heading) if tilt is None else _yaw_matrix(heading) @ tilt
+    pose = sensor.Pose(origin, rot)
     directions = make_pattern(sim).frame(frame_index).directions  # [R, 3] sensor frame
     sensor_cfg = sensor.SensorConfig(
         min_range=sim.min_range, max_range=sim.max_range, range_noise_std=sim.range_noise,
         dropout_prob=sim.dropout,
     )  # fmt: skip
     scan = sensor.scan(model, data, pose, directions, key, sensor_cfg, reflectivity=refl)
+    if tilt is not None:  # the cloud levelled, as LidarMount.levelled delivers it
+        xyz = jnp.einsum("ij,brj->bri", tilt, scan.points[..., :3])
+        scan = scan.replace(points=scan.points.at[..., :3].set(xyz))
     valid = scan.valid & in_workspace(scan.points[..., :3], config.grid)  # [B, R]
     geom_slot = jnp.asarray(tpl.geom_slot)
     point_slot = jnp.where(scan.geom_id >= 0, geom_slot[jnp.maximum(scan.geom_id, 0)], -1)
@@ -460,14 +476,16 @@ def reference_frame(
     pose, _, _, _ = _np_world_prims(scene, time)
     origin = np.array([*(scene.ego[:2] + scene.ego_velocity * time), scene.sensor_height])
     heading = float(scene.ego[2])
-    rot = np.asarray(_yaw_matrix(jnp.float32(heading)))
+    tilt = mount_rotation(sim)
+    tilt = np.eye(3) if tilt is None else tilt.astype(np.float64)
+    rot = np.asarray(_yaw_matrix(jnp.float32(heading)), np.float64) @ tilt  # world <- lidar
     world_dirs = directions @ rot.T
     dist, gid = reference_cast(tpl, size, xpos, xmat, origin, world_dirs, sim.max_range)
     hit = gid >= 0
     measured = dist + sim.range_noise * rng.standard_normal(len(dist))
     valid = hit & (rng.random(len(dist)) >= sim.dropout)
     valid &= (measured >= sim.min_range) & (measured <= sim.max_range)
-    xyz = directions * measured[:, None]
+    xyz = directions * measured[:, None] @ tilt.T  # levelled
     g = grid
     valid &= (xyz[:, 0] >= g.x_range[0]) & (xyz[:, 0] <= g.x_range[1])
     valid &= (xyz[:, 1] >= g.y_range[0]) & (xyz[:, 1] <= g.y_range[1])

@@ -8,10 +8,16 @@ x, y, z, intensity) on ``--topic`` and the ground truth as visualization_msgs/Ma
 sequences of ``generate.generate_sequences`` (people and robots move, the lidar rides its
 robot); scene j uses ``fold_in(key(seed), j)``. A thread generates frames ahead of the
 publishing loop, so the rate holds whenever generation keeps up (it says when it does not).
+
+``--lidar-rpy ROLL,PITCH,YAW`` simulates a tilted lidar (``sim.sensor_rpy``) and publishes
+its clouds as the sensor delivers them, in its own tilted frame (``--frame-id``); the
+ground truth stays in the level frame, named by ``--level-frame``: what ``indoorbev ros2
+detect --lidar-rpy ... --level-frame ...`` takes in and gives out.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import queue
 import threading
 import time
@@ -21,6 +27,7 @@ import jax
 import numpy as np
 
 from indoorbev_jax.config import Config
+from indoorbev_jax.mount import LEVEL, LidarMount
 from indoorbev_jax.rosbag import MARKER_ARRAY, POINTCLOUD2, cloud_msg, markers_msg, typestore
 
 POINTS_TOPIC, OBJECTS_TOPIC = "/lidar/points", "/lidar/objects"
@@ -40,7 +47,20 @@ def scene_frames(config: Config, seed: int, split: str = "test") -> Iterator:
             yield points.astype(np.float32), labels
 
 
-def check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_timeout) -> None:
+def frame_messages(ts, points, labels, names, stamp: int, frame_id: str, mount=LEVEL,
+                   level_frame: str | None = None):  # fmt: skip
+    """(PointCloud2, MarkerArray) of one simulated frame: the cloud turned from the level
+    frame into the tilted lidar's (``mount``; the points R^T p) under ``frame_id``, the
+    ground truth under ``level_frame`` when tilted, else ``frame_id``."""
+    if mount.rotated:
+        points = points.copy()
+        points[:, :3] = (points[:, :3].astype(np.float64) @ mount.rotation()).astype(np.float32)
+    cloud = cloud_msg(ts, points, stamp, frame_id)
+    return cloud, markers_msg(ts, labels, names, stamp, level_frame or frame_id)
+
+
+def check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_timeout,
+                   mount=LEVEL, level_frame=None) -> None:  # fmt: skip
     """A ``ValueError`` naming the first setting of ``publish`` that cannot work, before
     the node starts."""
     from indoorbev_jax.cli import check_positive, check_whole
@@ -52,6 +72,17 @@ def check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_ti
     check_topic_name(objects_topic, "objects_topic")
     check_whole("wait_subscribers", wait_subscribers, 0)
     check_positive("wait_timeout", wait_timeout)
+    if mount.rotated and not level_frame:
+        raise ValueError(
+            "--lidar-rpy publishes the clouds in the tilted lidar's frame and the ground "
+            "truth in the level one: name it with --level-frame (the lidar's origin with the "
+            "robot's level axes)"
+        )
+    if level_frame and not mount.rotated:
+        raise ValueError(
+            f"--level-frame {level_frame!r} without a --lidar-rpy rotation: the ground truth "
+            "is in --frame-id's frame; drop --level-frame"
+        )
 
 
 def publish(
@@ -68,6 +99,8 @@ def publish(
     wait_subscribers: int = 0,
     wait_timeout: float = 60.0,
     ros_args: list[str] | None = None,
+    lidar_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    level_frame: str | None = None,
 ) -> dict:
     """Publishes simulated frames until ``frames`` are out (0: until Ctrl-C / SIGTERM).
 
@@ -85,6 +118,9 @@ def publish(
         (then half a second more, for the subscriber's side of the discovery).
       wait_timeout: give up waiting after this many seconds (a ``RuntimeError``).
       ros_args: arguments after ``--ros-args``, passed to rclpy.
+      lidar_rpy: the lidar's roll, pitch, yaw in the level frame, degrees (URDF rpy): the
+        scans are simulated tilted (``sim.sensor_rpy``) and published in its frame.
+      level_frame: the ground truth's frame id when ``lidar_rpy`` tilts (required then).
 
     Returns:
       {"frames": published, "rate_hz": achieved rate, "late": frames sent over a period late}.
@@ -92,8 +128,13 @@ def publish(
     from indoorbev_jax.cli import check_seed
     from indoorbev_jax.ros2 import runtime
 
-    check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_timeout)
+    mount = LidarMount(*lidar_rpy)
+    check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_timeout, mount,
+                   level_frame)  # fmt: skip
     check_seed("seed", seed)
+    if mount.rotated:
+        sim = dataclasses.replace(config.sim, sensor_rpy=tuple(map(float, lidar_rpy)))
+        config = dataclasses.replace(config, sim=sim)
     runtime.require_rclpy()
     if record:
         from indoorbev_jax.ros2.record import ensure_new
@@ -159,8 +200,9 @@ def publish(
             last = time.monotonic()
             first = first or last
             stamp = node.get_clock().now().nanoseconds
-            cloud = ts.serialize_cdr(cloud_msg(ts, points, stamp, frame_id), POINTCLOUD2)
-            truth = markers_msg(ts, labels, names, stamp, frame_id)
+            cloud, truth = frame_messages(ts, points, labels, names, stamp, frame_id, mount,
+                                          level_frame)  # fmt: skip
+            cloud = ts.serialize_cdr(cloud, POINTCLOUD2)
             for m in truth.markers:
                 m.lifetime.sec, m.lifetime.nanosec = divmod(lifetime_ns, 10**9)
             truth = ts.serialize_cdr(truth, MARKER_ARRAY)

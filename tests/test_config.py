@@ -1,6 +1,7 @@
 """Config presets and validation messages that name the field."""
 
 import dataclasses
+import math
 import re
 
 import pytest
@@ -138,6 +139,12 @@ def test_with_overrides_checks_each_value_against_the_field_type():
             with_overrides(base, [item])
     with pytest.raises(ConfigError, match="train has no field 'nope' .*augment, eval_batches"):
         with_overrides(base, ["train.nope=1"])
+    # The simulated lidar's tilt: three finite angles.
+    assert with_overrides(base, ["sim.sensor_rpy=[0, 20, 0]"]).sim.sensor_rpy == (0.0, 20.0, 0.0)
+    with pytest.raises(ConfigError, match=r"'sim.sensor_rpy': got '\[0, 20\]', expected"):
+        with_overrides(base, ["sim.sensor_rpy=[0, 20]"])
+    with pytest.raises(ConfigError, match="'sim.sensor_rpy': expected finite degrees"):
+        dataclasses.replace(base.sim, sensor_rpy=(0.0, math.nan, 0.0))
 
 
 def test_configs_pass_through_jit_and_vmap_without_static_argnums():

@@ -69,6 +69,10 @@ def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, caps
             eval_sim.main(["--model", str(path), "--sensor-height", bad])
         assert exit_info.value.code == 2
         assert said in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        eval_sim.main(["--model", str(path), "--lidar-rpy", "0,20"])
+    assert exit_info.value.code == 2
+    assert "--lidar-rpy: expected ROLL,PITCH,YAW in degrees, got '0,20'" in capsys.readouterr().err
 
 
 def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tmp_path, capsys):
@@ -248,6 +252,17 @@ def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
         ValueError, match=rf"{re.escape(str(bad_shape))}: parameter .*'a'.* has shape \(3, 3\)"
     ):
         average_models([paths[0], bad_shape])
+
+    # The average was trained on every model's lidar heights; one tilt only.
+    def sim(**kw):
+        return dataclasses.replace(tiny, sim=dataclasses.replace(tiny.sim, **kw))
+
+    high = export_model(trees[1], sim(sensor_height=(0.6, 1.5)), tmp_path / "high.msgpack")
+    low = export_model(trees[2], sim(sensor_height=(0.15, 0.5)), tmp_path / "low.msgpack")
+    assert average_models([paths[0], high, low])[0] == sim(sensor_height=(0.15, 1.5))
+    tilted = export_model(trees[1], sim(sensor_rpy=(0, 20, 0)), tmp_path / "tilt.msgpack")
+    with pytest.raises(ValueError, match=rf"{re.escape(str(tilted))}: sim\.sensor_rpy = "):
+        average_models([paths[0], tilted])
     fewer = export_model({"params": {"a": trees[0]["params"]["a"]}}, tiny, tmp_path / "f.msgpack")
     with pytest.raises(ValueError, match=rf"{re.escape(str(fewer))}: no parameter .*'b'"):
         average_models([paths[0], fewer])

@@ -73,6 +73,19 @@ def test_full_turns_and_inf_points_are_no_rotation_and_no_warning():
     assert LidarMount(pitch=0.349).radians_hint().endswith("pass 0,20,0")
 
 
+def test_a_mount_away_from_the_trained_tilt_is_pointed_out():
+    assert LidarMount(pitch=20.0).tilt_hint((0.0, 0.0, 0.0)) is None  # level-trained: no note
+    assert LidarMount(pitch=20.5).tilt_hint((0.0, 20.0, 0.0)) is None  # within a degree
+    assert LidarMount(yaw=360.0, pitch=20.0).tilt_hint((0.0, 20.0, 0.0)) is None
+    # The angle between the two orientations, against scipy's rotation magnitude.
+    hint = LidarMount().tilt_hint((0.0, 20.0, 0.0))
+    assert "pitch 20, yaw 0 deg (sim.sensor_rpy), 20.0 deg from this mount's --lidar-rpy" in hint
+    assert hint.split("--lidar-rpy ")[1].startswith("0,0,0;")
+    a, b = (5.0, 20.0, 0.0), (0.0, 12.0, 30.0)
+    angle = Rotation.from_euler("xyz", a, True).inv() * Rotation.from_euler("xyz", b, True)
+    assert f"{np.degrees(angle.magnitude()):.1f} deg from" in LidarMount(*b).tilt_hint(a)
+
+
 def test_bad_mounts_are_named():
     with pytest.raises(ValueError, match="lidar height: expected metres >= 0"):
         LidarMount(height=-1.0)
@@ -172,6 +185,9 @@ def test_predict_records_the_mount_and_refuses_to_mix(model_file, tmp_path, caps
     # A URDF's radians given as degrees are pointed out.
     assert cli_main([*argv, "--lidar-rpy", "0,0.349,0", "--overwrite"]) == 0
     assert "if these are a URDF's radians, pass 0,20,0" in capsys.readouterr().err
+    # A level frame with nothing to name (no --bag-out) is pointed out, not silently dropped.
+    assert cli_main([*argv, "--lidar-rpy", "0,0.349,0", "--level-frame", "lvl"]) == 0
+    assert "--level-frame 'lvl' names the frame of --bag-out's messages" in capsys.readouterr().err
 
 
 def test_bag_out_of_a_levelled_run_shares_the_level_frame(model_file, tmp_path):

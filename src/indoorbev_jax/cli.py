@@ -156,7 +156,8 @@ def add_boxes_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _rpy(text: str) -> tuple[float, float, float]:
+def rpy_argument(text: str) -> tuple[float, float, float]:
+    """argparse type of ``--lidar-rpy``: ``ROLL,PITCH,YAW`` in degrees."""
     from indoorbev_jax.mount import parse_rpy
 
     try:
@@ -178,7 +179,7 @@ def add_mount_arguments(parser: argparse.ArgumentParser) -> None:
     """``--lidar-rpy`` and ``--lidar-height``: how the lidar sits (``mount.LidarMount``)."""
     parser.add_argument(
         "--lidar-rpy",
-        type=_rpy,
+        type=rpy_argument,
         default=(0.0, 0.0, 0.0),
         metavar="ROLL,PITCH,YAW",
         help="the lidar's orientation on the robot in degrees (a URDF's rpy, which is in "

@@ -501,6 +501,9 @@ class SimConfig:
     min_range: float = 0.1
     max_range: float = 40.0
     sensor_height: tuple[float, float] = (0.35, 0.8)  # lidar above the floor, metres
+    # The lidar's roll, pitch, yaw in the robot's level frame, degrees (URDF rpy, as
+    # indoorbev_jax.mount.LidarMount): a tilted sensor's coverage; the cloud comes levelled.
+    sensor_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
     ego_speed: tuple[float, float] = (0.2, 1.0)  # m/s of the robot carrying the lidar
     # Object slots per class (CLASS_NAMES order): the capacity of the scene template.
     slots_per_class: tuple[int, ...] = (4, 8, 2, 3, 3, 4, 4, 2, 3)
@@ -530,6 +533,9 @@ class SimConfig:
             lo, hi = getattr(self, name)
             if not 0 <= lo <= hi:
                 _fail(f"sim.{name}", f"expected 0 <= min <= max, got {getattr(self, name)!r}")
+        _check_len("sim.sensor_rpy", self.sensor_rpy, 3)
+        if not all(math.isfinite(a) for a in self.sensor_rpy):
+            _fail("sim.sensor_rpy", f"expected finite degrees, got {self.sensor_rpy!r}")
         _check_len("sim.slots_per_class", self.slots_per_class, len(CLASS_NAMES))
         if any(n < 0 for n in self.slots_per_class) or not sum(self.slots_per_class):
             _fail("sim.slots_per_class", f"need counts >= 0, not all 0: {self.slots_per_class}")

@@ -116,6 +116,23 @@ class LidarMount:
             )
         return None
 
+    def tilt_hint(self, trained_rpy: tuple[float, float, float]) -> str | None:
+        """A note when the model was trained on a tilted lidar (``sim.sensor_rpy``) and this
+        mount is more than a degree away from it: the model knows that tilt's coverage."""
+        trained = LidarMount(*trained_rpy)
+        if not trained.rotated:
+            return None
+        turn = trained.rotation().T @ self.rotation()
+        angle = math.degrees(math.acos(float(np.clip((np.trace(turn) - 1) / 2, -1.0, 1.0))))
+        if angle <= 1.0:
+            return None
+        return (
+            "the model was trained on a lidar at roll {:g}, pitch {:g}, yaw {:g} deg "
+            "(sim.sensor_rpy), {:.1f} deg from this mount's --lidar-rpy {:g},{:g},{:g}; pass "
+            "your lidar's real tilt, and note the model was scored at its trained tilt "
+            "only".format(*trained_rpy, angle, self.roll, self.pitch, self.yaw)
+        )
+
 
 LEVEL = LidarMount()  # a level lidar read as it is: the default everywhere
 

@@ -147,8 +147,10 @@ def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
 
     Meant for runs continued from one common model, whose average usually lies in the same
     basin and validates better than each. The config is the first model's; every model must
-    share its ``ARCHITECTURE_SECTIONS`` and parameter shapes, or the error names the file and
-    the field or parameter that differs.
+    share its ``ARCHITECTURE_SECTIONS``, parameter shapes and lidar tilt (``sim.sensor_rpy``),
+    or the error names the file and the field or parameter that differs. The lidar heights
+    the average was trained on (``sim.sensor_height``, which predict's ``--lidar-height``
+    treats as trained) are the span of all the models' heights.
 
     Args:
       paths: model files or run directories (``load_model``), at least two.
@@ -160,8 +162,17 @@ def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
     pairs, treedef = jax.tree_util.tree_flatten_with_path(first)
     flat_first = dict(pairs)
     total = {k: np.array(v, np.float64) for k, v in flat_first.items()}  # a copy
+    lo, hi = config.sim.sensor_height
     for path in rest:
         other_config, params = load_model(path)
+        if other_config.sim.sensor_rpy != config.sim.sensor_rpy:
+            raise ValueError(
+                f"{path}: sim.sensor_rpy = {other_config.sim.sensor_rpy!r}, but {first_path} "
+                f"has {config.sim.sensor_rpy!r}; models trained for different lidar tilts "
+                "are not averaged"
+            )
+        lo = min(lo, other_config.sim.sensor_height[0])
+        hi = max(hi, other_config.sim.sensor_height[1])
         for section in ARCHITECTURE_SECTIONS:
             mine, theirs = getattr(config, section), getattr(other_config, section)
             if mine != theirs:
@@ -186,6 +197,8 @@ def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
                 )
             total[key] += np.asarray(flat[key], np.float64)
     leaves = [(total[k] / len(paths)).astype(np.asarray(v).dtype) for k, v in flat_first.items()]
+    sim = dataclasses.replace(config.sim, sensor_height=(lo, hi))
+    config = dataclasses.replace(config, sim=sim)
     return config, jax.tree_util.tree_unflatten(treedef, leaves)
 
 
@@ -557,8 +570,13 @@ def predict(
     say = functools.partial(print, flush=True) if verbose else (lambda *a, **k: None)
     if mount != LEVEL:
         say(f"lidar mount: {mount.describe(config.sim.sensor_height)}")
-    if hint := mount.radians_hint():
-        print(f"note: {hint}", file=sys.stderr, flush=True)
+    for hint in (mount.radians_hint(), mount.tilt_hint(config.sim.sensor_rpy)):
+        if hint:
+            print(f"note: {hint}", file=sys.stderr, flush=True)
+    if level_frame and bag_out is None:
+        print(f"note: --level-frame {level_frame!r} names the frame of --bag-out's messages; "
+              "without --bag-out it is unused (KITTI labels carry no frame id)",
+              file=sys.stderr, flush=True)  # fmt: skip
     started = time.perf_counter()
 
     def run_frames():

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from indoorbev_sim import generate, labels, objects, scenes
+from scipy.spatial import cKDTree
 
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data.rasterize import instance_ids_from_masks
@@ -20,6 +21,7 @@ CFG = Config.tiny()
 CFG = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, range_noise=0.0, dropout=0.0))
 B = 4
 KEYS = (3, 11)
+KEY = jax.random.key(KEYS[0])
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +74,44 @@ def test_targets_match_sequential_reference(frames):
             mism += abs(int(batch.point_valid[b].sum()) - int(ref["valid"].sum()))
     assert objs >= 3, "too few labelled objects to compare"
     assert mism <= 1e-3 * rays
+
+
+@pytest.mark.parametrize("rpy", [(0.0, 20.0, 0.0), (180.0, 0.0, 30.0)])
+def test_a_tilted_lidar_sees_its_own_coverage_and_delivers_a_level_cloud(rpy):
+    """``sim.sensor_rpy``: rays leave along R d (URDF rpy: pitch +20 is nose down), the
+    cloud comes levelled; checked against MuJoCo's mj_multiRay and the pattern's limits."""
+    cfg = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, sensor_rpy=rpy))
+    batch, info = jax.tree.map(np.asarray, generate.jitted_generate(cfg, "train", 2)(KEY))
+    pattern = generate.make_pattern(cfg.sim)
+    dirs = np.asarray(pattern.frame(int(info.frame_index[0])).directions, np.float64)
+    lo, hi = np.degrees(generate._elevation_limits(pattern))
+    for b in range(2):
+        scene = generate.scene_numpy(info.scene, b)
+        rng = np.random.default_rng(0)
+        ref = generate.reference_frame(cfg, scene, float(info.time[b]), dirs, rng)
+        v = batch.targets.valid[b]
+        np.testing.assert_array_equal(info.slot[b][v], np.flatnonzero(ref["labelled"]))
+        np.testing.assert_allclose(info.visibility[b][v], ref["visibility"][info.slot[b][v]])
+        # The same returns, levelled: every delivered point is one of the reference's.
+        mine = batch.points[b][batch.point_valid[b], :3]
+        theirs = ref["points"][ref["valid"], :3]
+        assert abs(len(mine) - len(theirs)) <= 2
+        gap, _ = cKDTree(theirs).query(mine)
+        assert (gap < 1e-4).mean() >= 0.995
+        # Level means the floor is the plane z = -height, whatever the tilt.
+        h = float(scene.sensor_height)
+        floor = ref["valid"] & (ref["geom_id"] == scenes.FLOOR)
+        assert floor.sum() >= 20
+        np.testing.assert_allclose(ref["points"][floor, 2], -h, atol=1e-4)
+        # Coverage: the pattern's elevations [lo, hi], tilted, in the level frame.
+        el = np.degrees(np.arctan2(mine[:, 2], np.linalg.norm(mine[:, :2], axis=1)))
+        azimuth = np.arctan2(mine[:, 1], mine[:, 0])
+        if rpy[1]:  # nose down 20: ahead reaches 20 lower, behind starts 20 higher
+            ahead, behind = np.abs(azimuth) < 0.2, np.abs(azimuth) > np.pi - 0.2
+            assert lo - 20 - 1.5 <= el[ahead].min() < lo - 20 + 1.5
+            assert el[behind].min() >= lo + 20 - 1.5
+        else:  # upside down: the elevations flip, [-hi, -lo]
+            assert el.min() >= -hi - 1.0 and el.max() <= -lo + 1.0 and el.min() < -hi + 3.0
 
 
 def test_points_lie_in_their_own_footprint(frames):
