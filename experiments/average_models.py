@@ -35,10 +35,10 @@ def main(argv=None) -> None:
         p.error(str(e))
     path = export_model(params, config, args.out)
     count = sum(math.prod(x.shape) for x in jax.tree.leaves(params))
+    lo, hi = config.sim.sensor_height
     print(f"average of {len(args.models)} models ({count:,} parameters, score threshold "
           f"{config.inference.score_threshold}, mask threshold "
-          f"{config.inference.mask_threshold}, lidar heights "
-          "{:g}-{:g} m) -> ".format(*config.sim.sensor_height) + f"{path} "
+          f"{config.inference.mask_threshold}, lidar heights {lo:g}-{hi:g} m) -> {path} "
           f"({path.stat().st_size / 2**20:.1f} MiB)")  # fmt: skip
 
 

@@ -57,6 +57,7 @@ from indoorbev_jax.config import ConfigError, InferenceConfig
 from indoorbev_jax.evaluate import report
 from indoorbev_jax.geometry import in_workspace
 from indoorbev_jax.metrics import Evaluator, format_percent
+from indoorbev_jax.mount import LidarMount
 from indoorbev_jax.predict import load_model
 
 TEST_SEED = 1_000_003  # root seed of the held-out test set (training uses train.seed, 0)
@@ -291,6 +292,8 @@ def main(argv=None) -> None:
     if args.lidar_rpy is not None:
         sim = dataclasses.replace(config.sim, sensor_rpy=args.lidar_rpy)
         config = dataclasses.replace(config, sim=sim)
+        if hint := LidarMount(*args.lidar_rpy).radians_hint():
+            print(f"note: {hint}", file=sys.stderr)
     scores = args.score_threshold or (config.inference.score_threshold,)
     masks = args.mask_threshold or (config.inference.mask_threshold,)
     views = {"views": args.views, "view_iou": args.view_iou}

@@ -78,6 +78,9 @@ def main(argv: list[str] | None = None) -> int:
     ex.add_argument("--seed", type=seed_int, default=0)
     ex.add_argument("--rosbag", default=None, help="also write a ROS2 bag at this path")
     ex.add_argument("--preset", default=None, help=preset_help)
+    ex.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a config field, e.g. 'sim.sensor_rpy=[0,20,0]' (repeatable; "
+                    "a resumed export needs the same)")  # fmt: skip
     ex.add_argument("--no-progress", action="store_true")
     ex.add_argument("--throttle", type=float, default=0.0, help="pause (s) after each scene")
     ex.add_argument("--cache", default=default_cache, help="persistent XLA cache folder")
@@ -97,6 +100,13 @@ def main(argv: list[str] | None = None) -> int:
     ck.add_argument("--seed", type=seed_int, default=0)
     ck.add_argument("--preset", default="paper")
     ck.add_argument("--split", default="train")
+    ck.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override a config field, e.g. 'sim.sensor_rpy=[0,20,0]' (repeatable)",
+    )
     ck.add_argument("--noise-free", action="store_true", help="no range noise or dropout")
     ck.add_argument("--cache", default=default_cache, help="persistent XLA cache folder")
 

@@ -231,7 +231,8 @@ def export(
     if rosbag is not None:  # write_bag runs last: refuse a bad target before hours of frames
         _check_bag_place(check_folder("rosbag", rosbag, ExportError), root)
         check_bag_target(rosbag, (POINTS_TOPIC, OBJECTS_TOPIC))
-    _check_meta(root, {"seed": int(seed), "frames": int(frames), "config": config.to_dict()})
+    meta = {"seed": int(seed), "frames": int(frames), "config": config.stable_dict()}
+    _check_meta(root, meta)  # stable_dict: an export.json of an older version still matches
     _remove_stale_temporaries(root)
     t_len = config.sim.frames_per_sequence
     scenes = [

@@ -1,6 +1,7 @@
 """Labels of one simulated frame: boxes, true-shape footprints, point counts, occlusion.
 
-Everything is in the lidar frame (x forward, y left, z up, origin at the sensor).
+Everything is in the lidar frame (x forward, y left, z up, origin at the sensor); for a
+tilted lidar (``sim.sensor_rpy``), its level frame, the one the cloud is delivered in.
 
 * Box: the tight box of the object's primitives in its object frame (``objects``), centre
   ``pos``, ``dims`` = (length, width, height), ``yaw`` = object heading minus sensor heading.

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import queue
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -60,7 +61,7 @@ def frame_messages(ts, points, labels, names, stamp: int, frame_id: str, mount=L
 
 
 def check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_timeout,
-                   mount=LEVEL, level_frame=None) -> None:  # fmt: skip
+                   mount=LEVEL, level_frame=None, frame_id="lidar") -> None:  # fmt: skip
     """A ``ValueError`` naming the first setting of ``publish`` that cannot work, before
     the node starts."""
     from indoorbev_jax.cli import check_positive, check_whole
@@ -77,6 +78,11 @@ def check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_ti
             "--lidar-rpy publishes the clouds in the tilted lidar's frame and the ground "
             "truth in the level one: name it with --level-frame (the lidar's origin with the "
             "robot's level axes)"
+        )
+    if level_frame and level_frame == frame_id:
+        raise ValueError(
+            f"--level-frame {level_frame!r} is --frame-id's: the tilted cloud and the level "
+            "ground truth are in different frames and need different ids"
         )
     if level_frame and not mount.rotated:
         raise ValueError(
@@ -119,7 +125,8 @@ def publish(
       wait_timeout: give up waiting after this many seconds (a ``RuntimeError``).
       ros_args: arguments after ``--ros-args``, passed to rclpy.
       lidar_rpy: the lidar's roll, pitch, yaw in the level frame, degrees (URDF rpy): the
-        scans are simulated tilted (``sim.sensor_rpy``) and published in its frame.
+        scans are simulated tilted (it replaces ``config.sim.sensor_rpy``) and published
+        in the lidar's frame.
       level_frame: the ground truth's frame id when ``lidar_rpy`` tilts (required then).
 
     Returns:
@@ -130,11 +137,14 @@ def publish(
 
     mount = LidarMount(*lidar_rpy)
     check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_timeout, mount,
-                   level_frame)  # fmt: skip
+                   level_frame, frame_id)  # fmt: skip
     check_seed("seed", seed)
-    if mount.rotated:
-        sim = dataclasses.replace(config.sim, sensor_rpy=tuple(map(float, lidar_rpy)))
-        config = dataclasses.replace(config, sim=sim)
+    if hint := mount.radians_hint():
+        print(f"indoorbev-sim ros2 publish: note: {hint}", file=sys.stderr, flush=True)
+    # The scans are simulated with the tilt the clouds are published with, whatever
+    # config.sim.sensor_rpy said.
+    sim = dataclasses.replace(config.sim, sensor_rpy=tuple(map(float, lidar_rpy)))
+    config = dataclasses.replace(config, sim=sim)
     runtime.require_rclpy()
     if record:
         from indoorbev_jax.ros2.record import ensure_new

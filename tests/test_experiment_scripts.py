@@ -260,6 +260,8 @@ def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
     high = export_model(trees[1], sim(sensor_height=(0.6, 1.5)), tmp_path / "high.msgpack")
     low = export_model(trees[2], sim(sensor_height=(0.15, 0.5)), tmp_path / "low.msgpack")
     assert average_models([paths[0], high, low])[0] == sim(sensor_height=(0.15, 1.5))
+    turned = export_model(trees[1], sim(sensor_rpy=(0, 0, 360)), tmp_path / "turn.msgpack")
+    assert average_models([paths[0], turned])[0].sim.sensor_rpy == (0, 0, 0)  # the same tilt
     tilted = export_model(trees[1], sim(sensor_rpy=(0, 20, 0)), tmp_path / "tilt.msgpack")
     with pytest.raises(ValueError, match=rf"{re.escape(str(tilted))}: sim\.sensor_rpy = "):
         average_models([paths[0], tilted])

@@ -185,6 +185,15 @@ def test_predict_records_the_mount_and_refuses_to_mix(model_file, tmp_path, caps
     # A URDF's radians given as degrees are pointed out.
     assert cli_main([*argv, "--lidar-rpy", "0,0.349,0", "--overwrite"]) == 0
     assert "if these are a URDF's radians, pass 0,20,0" in capsys.readouterr().err
+    # A model trained on a tilted lidar: a run with another tilt is pointed out.
+    params = P.load_model(model_file)[1]
+    tilted = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, sensor_rpy=(0, 20, 0)))
+    tilted_file = P.export_model(params, tilted, tmp_path / "tilted.msgpack")
+    run = ["predict", str(tilted_file), str(scan), "--no-pictures"]
+    assert cli_main([*run, "--out", str(tmp_path / "t1")]) == 0
+    assert "trained on a lidar at roll 0, pitch 20, yaw 0 deg" in capsys.readouterr().err
+    assert cli_main([*run, "--out", str(tmp_path / "t2"), "--lidar-rpy", "0,20,0"]) == 0
+    assert "trained on a lidar" not in capsys.readouterr().err
     # A level frame with nothing to name (no --bag-out) is pointed out, not silently dropped.
     assert cli_main([*argv, "--lidar-rpy", "0,0.349,0", "--level-frame", "lvl"]) == 0
     assert "--level-frame 'lvl' names the frame of --bag-out's messages" in capsys.readouterr().err

@@ -668,3 +668,15 @@ def test_topic_with_a_second_message_type_reads_its_clouds_only(tmp_path):
             conn = writer.add_connection("/s", "std_msgs/msg/String", typestore=ts)
             writer.write(conn, 1, ts.serialize_cdr(string(data="x"), "std_msgs/msg/String"))
         list(iter_clouds(only, "/s"))
+
+
+def test_model_fingerprint_is_the_one_older_versions_gave():
+    """predict.json holds the model's hash; a config field added later at its default
+    (``config.LATER_FIELDS``) leaves it as it was, so runs of older versions resume. The
+    value is what the version before ``sim.sensor_rpy`` (e02316c~1) printed."""
+    params = {"params": {"a": np.arange(6, dtype=np.float32).reshape(2, 3)}}
+    tiny = Config.tiny()
+    old = "34d8b7e6117624d2caa77e3a88186d305a786b74210643b369215e923ecb010d"
+    assert P.model_fingerprint(tiny, params) == old
+    tilted = dataclasses.replace(tiny, sim=dataclasses.replace(tiny.sim, sensor_rpy=(0, 5, 0)))
+    assert P.model_fingerprint(tilted, params) != old

@@ -667,6 +667,17 @@ class Config:
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
+    def stable_dict(self) -> dict[str, Any]:
+        """``to_dict`` without the ``LATER_FIELDS`` that hold their defaults: what files
+        compare configs by (a model's hash in predict.json, export.json), so that the files
+        written before such a field existed still match the same config."""
+        d = self.to_dict()
+        for path, default in LATER_FIELDS.items():
+            section, name = path.split(".")
+            if getattr(getattr(self, section), name) == default:
+                del d[section][name]
+        return d
+
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2)
 
@@ -674,6 +685,11 @@ class Config:
     def from_dict(cls, d: dict[str, Any]) -> Config:
         """Inverse of ``to_dict`` (lists become tuples); unknown keys are an error."""
         return _from_dict(cls, d, "")
+
+
+# Fields added after files recording a config were written, with their defaults (the
+# behaviour before them): ``Config.stable_dict`` leaves them out at the default.
+LATER_FIELDS: dict[str, Any] = {"sim.sensor_rpy": (0.0, 0.0, 0.0)}
 
 
 def _from_dict(kind, d: dict[str, Any], prefix: str):

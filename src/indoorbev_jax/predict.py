@@ -165,7 +165,8 @@ def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
     lo, hi = config.sim.sensor_height
     for path in rest:
         other_config, params = load_model(path)
-        if other_config.sim.sensor_rpy != config.sim.sensor_rpy:
+        theirs, mine = (LidarMount(*c.sim.sensor_rpy) for c in (other_config, config))
+        if not np.allclose(theirs.rotation(), mine.rotation(), rtol=0.0, atol=1e-9):
             raise ValueError(
                 f"{path}: sim.sensor_rpy = {other_config.sim.sensor_rpy!r}, but {first_path} "
                 f"has {config.sim.sensor_rpy!r}; models trained for different lidar tilts "
@@ -424,8 +425,9 @@ OUTPUT_DIRS = {"label_2": ".txt", "mask_2": ".png", "pictures": ".png"}
 
 
 def model_fingerprint(config: Config, params: Any) -> str:
-    """sha256 of the config and every parameter's bytes: the same model, the same hash."""
-    digest = hashlib.sha256(config.to_json().encode())
+    """sha256 of the config and every parameter's bytes: the same model, the same hash
+    (``Config.stable_dict``: also the hash older versions gave it, so their runs resume)."""
+    digest = hashlib.sha256(json.dumps(config.stable_dict(), indent=2).encode())
     for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
         leaf = np.asarray(leaf)
         digest.update(f"{jax.tree_util.keystr(path)}{leaf.dtype}{leaf.shape}".encode())

@@ -52,6 +52,16 @@ def test_publish_a_tilted_lidar_needs_a_level_frame_and_only_then(capsys):
     assert "name it with --level-frame" in capsys.readouterr().err
     assert main(["ros2", "publish", "--level-frame", "lvl"]) == 2
     assert "--level-frame 'lvl' without a --lidar-rpy rotation" in capsys.readouterr().err
+    assert main(["ros2", "publish", "--lidar-rpy", "0,20,0", "--level-frame", "lidar"]) == 2
+    assert "--level-frame 'lidar' is --frame-id's" in capsys.readouterr().err
+
+
+def test_export_and_check_take_config_overrides_and_name_a_bad_one(tmp_path, capsys):
+    out = tmp_path / "ds"
+    assert main(["export", "--out", str(out), "--frames", "1", "--set", "sim.nope=1"]) == 2
+    assert "sim has no field 'nope'" in capsys.readouterr().err and not out.exists()
+    assert main(["check", "--preset", "tiny", "--set", "sim.sensor_rpy=[0, 20]"]) == 2
+    assert "config field 'sim.sensor_rpy': got '[0, 20]'" in capsys.readouterr().err
 
 
 def test_a_tilted_lidar_publishes_in_its_own_frame_and_the_truth_in_the_level_one():

@@ -284,6 +284,19 @@ def test_settings_mismatch_names_each_field(exported, tmp_path):
     assert "frames" not in msg.split("other settings:")[1]  # only the fields that differ
 
 
+def test_an_export_json_from_before_a_later_field_still_matches(exported, tmp_path):
+    """``sim.sensor_rpy`` came later: a level export leaves it out of export.json, so the
+    folders exported before it resume; a tilted one records it, and a level rerun differs."""
+    root, _, _ = exported
+    saved = json.loads((root / "export.json").read_text())
+    assert "sensor_rpy" not in saved["config"]["sim"]
+    tilted = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, sensor_rpy=(0, 20, 0)))
+    assert tilted.stable_dict()["sim"]["sensor_rpy"] == (0, 20, 0)
+    (tmp_path / "export.json").write_text(json.dumps({**saved, "config": tilted.stable_dict()}))
+    with pytest.raises(export_mod.ExportError, match=r"config.sim.sensor_rpy: \[0, 20, 0\] "):
+        export_mod.export(tmp_path, FRAMES, SEED, CFG, progress=False)
+
+
 def test_resume_progress_counts_only_new_frames(exported, tmp_path, monkeypatch, capsys):
     import tqdm
 
