@@ -5,7 +5,9 @@ their average usually validates better than each, at no inference cost. Check it
 validation split (``experiments/eval_sim.py --split val``) before shipping it. The config
 (thresholds included) is the first model's unless set here, but for the lidar heights
 (``sim.sensor_height``): the span of all the models' heights. Models trained for different
-lidar tilts (``sim.sensor_rpy``) are refused.
+lidar tilts (``sim.sensor_rpy``) need ``--sensor-rpy``, the tilt to record for the average
+(a level and a tilted model average into one that does fairly at both: docs/RESULTS.md
+"Lidar tilt").
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import math
 
 import jax
 
-from indoorbev_jax.cli import add_views_argument
+from indoorbev_jax.cli import add_views_argument, rpy_argument
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.predict import average_models, export_model, with_thresholds
 
@@ -27,9 +29,17 @@ def main(argv=None) -> None:
     p.add_argument("--score-threshold", type=float, default=None, help="inference.score_threshold")
     p.add_argument("--mask-threshold", type=float, default=None, help="inference.mask_threshold")
     add_views_argument(p, "the first model's")
+    p.add_argument(
+        "--sensor-rpy",
+        type=rpy_argument,
+        default=None,
+        metavar="ROLL,PITCH,YAW",
+        help="sim.sensor_rpy to record, degrees: needed when the models were trained for "
+        "different lidar tilts (default: their common one)",
+    )
     args = p.parse_args(argv)
     try:
-        config, params = average_models(args.models)
+        config, params = average_models(args.models, args.sensor_rpy)
         config = with_thresholds(config, args.score_threshold, args.mask_threshold, args.views)
     except (ValueError, FileNotFoundError, ConfigError) as e:
         p.error(str(e))

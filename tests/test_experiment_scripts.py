@@ -263,8 +263,13 @@ def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
     turned = export_model(trees[1], sim(sensor_rpy=(0, 0, 360)), tmp_path / "turn.msgpack")
     assert average_models([paths[0], turned])[0].sim.sensor_rpy == (0, 0, 0)  # the same tilt
     tilted = export_model(trees[1], sim(sensor_rpy=(0, 20, 0)), tmp_path / "tilt.msgpack")
-    with pytest.raises(ValueError, match=rf"{re.escape(str(tilted))}: sim\.sensor_rpy = "):
+    with pytest.raises(ValueError, match=rf"{re.escape(str(tilted))}: sim\.sensor_rpy = .*"
+                       r"say which tilt to record \(--sensor-rpy"):  # fmt: skip
         average_models([paths[0], tilted])
+    both = tmp_path / "both.msgpack"
+    script.main([str(paths[0]), str(tilted), "--out", str(both), "--sensor-rpy", "0,10,0"])
+    assert load_model(both)[0].sim.sensor_rpy == (0.0, 10.0, 0.0)
+    assert "lidar heights 0.35-0.8 m" in capsys.readouterr().out
     fewer = export_model({"params": {"a": trees[0]["params"]["a"]}}, tiny, tmp_path / "f.msgpack")
     with pytest.raises(ValueError, match=rf"{re.escape(str(fewer))}: no parameter .*'b'"):
         average_models([paths[0], fewer])

@@ -142,18 +142,23 @@ def with_thresholds(
 ARCHITECTURE_SECTIONS = ("grid", "encoder", "backbone", "head")
 
 
-def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
+def average_models(
+    paths: list[str | os.PathLike], sensor_rpy: tuple[float, float, float] | None = None
+) -> tuple[Config, Any]:
     """(config, params): the uniform average of the parameters of ``paths`` (a "model soup").
 
     Meant for runs continued from one common model, whose average usually lies in the same
     basin and validates better than each. The config is the first model's; every model must
-    share its ``ARCHITECTURE_SECTIONS``, parameter shapes and lidar tilt (``sim.sensor_rpy``),
-    or the error names the file and the field or parameter that differs. The lidar heights
-    the average was trained on (``sim.sensor_height``, which predict's ``--lidar-height``
-    treats as trained) are the span of all the models' heights.
+    share its ``ARCHITECTURE_SECTIONS`` and parameter shapes, or the error names the file and
+    the field or parameter that differs. The lidar heights the average was trained on
+    (``sim.sensor_height``, which predict's ``--lidar-height`` treats as trained) are the
+    span of all the models' heights. Models trained for different lidar tilts
+    (``sim.sensor_rpy``) need ``sensor_rpy``: the tilt the average is recorded for (what
+    ``eval_sim.py`` scores by default and predict's tilt note compares with).
 
     Args:
       paths: model files or run directories (``load_model``), at least two.
+      sensor_rpy: the average's ``sim.sensor_rpy`` (default: the models' common one).
     """
     if len(paths) < 2:
         raise ValueError(f"average_models: expected at least two models, got {len(paths)}")
@@ -166,11 +171,13 @@ def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
     for path in rest:
         other_config, params = load_model(path)
         theirs, mine = (LidarMount(*c.sim.sensor_rpy) for c in (other_config, config))
-        if not np.allclose(theirs.rotation(), mine.rotation(), rtol=0.0, atol=1e-9):
+        same_tilt = np.allclose(theirs.rotation(), mine.rotation(), rtol=0.0, atol=1e-9)
+        if not same_tilt and sensor_rpy is None:
             raise ValueError(
                 f"{path}: sim.sensor_rpy = {other_config.sim.sensor_rpy!r}, but {first_path} "
                 f"has {config.sim.sensor_rpy!r}; models trained for different lidar tilts "
-                "are not averaged"
+                "average into a model for no one tilt: say which tilt to record "
+                "(--sensor-rpy ROLL,PITCH,YAW)"
             )
         lo = min(lo, other_config.sim.sensor_height[0])
         hi = max(hi, other_config.sim.sensor_height[1])
@@ -199,6 +206,8 @@ def average_models(paths: list[str | os.PathLike]) -> tuple[Config, Any]:
             total[key] += np.asarray(flat[key], np.float64)
     leaves = [(total[k] / len(paths)).astype(np.asarray(v).dtype) for k, v in flat_first.items()]
     sim = dataclasses.replace(config.sim, sensor_height=(lo, hi))
+    if sensor_rpy is not None:
+        sim = dataclasses.replace(sim, sensor_rpy=tuple(map(float, sensor_rpy)))
     config = dataclasses.replace(config, sim=sim)
     return config, jax.tree_util.tree_unflatten(treedef, leaves)
 
