@@ -66,6 +66,12 @@ def _use_cache(path: str) -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
+def _add_set(parser: argparse.ArgumentParser, example: str) -> None:
+    """``--set FIELD=VALUE``, repeatable: config overrides (``config.with_overrides``)."""
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                        help=f"override a config field (repeatable), {example}")  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="indoorbev-sim", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -78,9 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     ex.add_argument("--seed", type=seed_int, default=0)
     ex.add_argument("--rosbag", default=None, help="also write a ROS2 bag at this path")
     ex.add_argument("--preset", default=None, help=preset_help)
-    ex.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                    help="override a config field, e.g. 'sim.sensor_rpy=[0,20,0]' (repeatable; "
-                    "a resumed export needs the same)")  # fmt: skip
+    _add_set(ex, "e.g. 'sim.sensor_rpy=[0,20,0]'; a resumed export needs the same")
     ex.add_argument("--no-progress", action="store_true")
     ex.add_argument("--throttle", type=float, default=0.0, help="pause (s) after each scene")
     ex.add_argument("--cache", default=default_cache, help="persistent XLA cache folder")
@@ -90,9 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     sh.add_argument("--out", required=True, help="folder for the PNGs")
     sh.add_argument("--ids", nargs="*", default=None, help="frame ids (default: all)")
     sh.add_argument("--preset", default=None, help=preset_help)
-    sh.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                    help='override a config field (repeatable), e.g. for your own class names '
-                    "--set 'data.class_map={\"Desk\": \"Table\"}'")  # fmt: skip
+    _add_set(sh, 'e.g. for your own class names --set \'data.class_map={"Desk": "Table"}\'')
 
     ck = sub.add_parser("check", help="label consistency and class statistics over N frames")
     ck.add_argument("--frames", type=positive_int, default=200)
@@ -100,13 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     ck.add_argument("--seed", type=seed_int, default=0)
     ck.add_argument("--preset", default="paper")
     ck.add_argument("--split", default="train")
-    ck.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="FIELD=VALUE",
-        help="override a config field, e.g. 'sim.sensor_rpy=[0,20,0]' (repeatable)",
-    )
+    _add_set(ck, "e.g. 'sim.sensor_rpy=[0,20,0]'")
     ck.add_argument("--noise-free", action="store_true", help="no range noise or dropout")
     ck.add_argument("--cache", default=default_cache, help="persistent XLA cache folder")
 

@@ -53,10 +53,7 @@ def frame_messages(ts, points, labels, names, stamp: int, frame_id: str, mount=L
     """(PointCloud2, MarkerArray) of one simulated frame: the cloud turned from the level
     frame into the tilted lidar's (``mount``; the points R^T p) under ``frame_id``, the
     ground truth under ``level_frame`` when tilted, else ``frame_id``."""
-    if mount.rotated:
-        points = points.copy()
-        points[:, :3] = (points[:, :3].astype(np.float64) @ mount.rotation()).astype(np.float32)
-    cloud = cloud_msg(ts, points, stamp, frame_id)
+    cloud = cloud_msg(ts, mount.unlevelled(points), stamp, frame_id)
     return cloud, markers_msg(ts, labels, names, stamp, level_frame or frame_id)
 
 

@@ -48,6 +48,13 @@ def test_rotation_is_urdf_rpy():
     # Upside down (roll 180): its +z is the world's -z, its y the world's -y.
     flipped = LidarMount(roll=180.0).apply(np.array([[1.0, 2.0, 3.0, 0.1]]), TRAINED)[0]
     np.testing.assert_allclose(flipped, [1.0, -2.0, -3.0, 0.1], atol=1e-6)
+    # unlevelled is levelled's inverse: the level frame's point as the tilted lidar sends it.
+    tilted = LidarMount(10.0, 20.0, -30.0)
+    point = np.array([[0.3, -1.2, 2.5, 0.7]], np.float32)
+    want = np.concatenate([point[:, :3] @ Rotation.from_euler("xyz", [10, 20, -30], True)
+                           .as_matrix(), point[:, 3:]], 1)  # fmt: skip
+    np.testing.assert_allclose(tilted.unlevelled(point), want, atol=1e-6)
+    np.testing.assert_allclose(tilted.levelled(tilted.unlevelled(point)), point, atol=1e-6)
 
 
 def test_height_offset_moves_the_floor_to_the_nearest_trained_height():

@@ -76,6 +76,16 @@ class LidarMount:
                 out[:, :3] = points[:, :3].astype(np.float64) @ self.rotation().T
         return out
 
+    def unlevelled(self, points: np.ndarray) -> np.ndarray:
+        """float32 [N, 4]: the inverse of ``levelled``, level-frame ``points`` as the tilted
+        lidar delivers them (R^T p)."""
+        points = np.asarray(points, np.float32).reshape(-1, 4)
+        out = points.copy()
+        if self.rotated:
+            with np.errstate(invalid="ignore"):
+                out[:, :3] = points[:, :3].astype(np.float64) @ self.rotation()
+        return out
+
     def apply(self, points: np.ndarray, trained_heights: tuple[float, float]) -> np.ndarray:
         """float32 [N, 4]: ``levelled`` points shifted by ``z_offset``, as the model sees them."""
         out = self.levelled(points)

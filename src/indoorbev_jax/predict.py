@@ -170,9 +170,8 @@ def average_models(
     lo, hi = config.sim.sensor_height
     for path in rest:
         other_config, params = load_model(path)
-        theirs, mine = (LidarMount(*c.sim.sensor_rpy) for c in (other_config, config))
-        same_tilt = np.allclose(theirs.rotation(), mine.rotation(), rtol=0.0, atol=1e-9)
-        if not same_tilt and sensor_rpy is None:
+        tilts = [LidarMount(*c.sim.sensor_rpy).rotation() for c in (other_config, config)]
+        if sensor_rpy is None and not np.allclose(*tilts, rtol=0.0, atol=1e-9):
             raise ValueError(
                 f"{path}: sim.sensor_rpy = {other_config.sim.sensor_rpy!r}, but {first_path} "
                 f"has {config.sim.sensor_rpy!r}; models trained for different lidar tilts "

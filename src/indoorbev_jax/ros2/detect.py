@@ -129,8 +129,8 @@ class Detector:
         level = np.array([g.x_range[0] + 0.75 * (g.x_range[1] - g.x_range[0]),
                           sum(g.y_range) / 2, sum(g.z_range) / 2])  # fmt: skip
         level[2] -= self.predictor.z_offset
-        point = [*(self.mount.rotation().T @ level), 0.5]
-        cloud = cloud_msg(self.ts, np.asarray([point], np.float32), 0, "warmup")
+        point = self.mount.unlevelled(np.array([[*level, 0.5]]))
+        cloud = cloud_msg(self.ts, point, 0, "warmup")
         return bytes(self.ts.serialize_cdr(cloud, POINTCLOUD2))
 
     def process(self, raw: bytes) -> Result:
