@@ -4,7 +4,8 @@ A uniform "model soup" of runs continued from one common model (``train.py --ini
 their average usually validates better than each, at no inference cost. Check it on the
 validation split (``experiments/eval_sim.py --split val``) before shipping it. The config
 (thresholds included) is the first model's unless set here, but for the lidar heights
-(``sim.sensor_height``): the span of all the models' heights. Models trained for different
+(``sim.sensor_height``): the span of all the models' heights, and the tilt jitter
+(``sim.sensor_tilt_jitter``): the largest of theirs. Models trained for different
 lidar tilts (``sim.sensor_rpy``) need ``--sensor-rpy``, the tilt to record for the average
 (a level and a tilted model average into one that does fairly at both: docs/RESULTS.md
 "Lidar tilt").

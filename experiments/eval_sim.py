@@ -33,8 +33,9 @@ mirrored and rotated clouds and fuses the outputs (``inference.apply_views``); t
 is the model file's ``inference.views``.
 A mount other than the trained one: ``--sensor-height`` simulates the lidar at other heights
 (``--z-offset`` then moves the cloud as predict's ``--lidar-height`` does) and ``--lidar-rpy``
-simulates it tilted (``sim.sensor_rpy``): the model sees the tilted lidar's returns levelled,
-as predict's ``--lidar-rpy`` feeds them.
+simulates it tilted (``sim.sensor_rpy``, one tilt for every frame): the model sees the tilted
+lidar's returns levelled, as predict's ``--lidar-rpy`` feeds them. ``--tilt-jitter`` tilts each
+scene's lidar by up to that many degrees more (``sim.sensor_tilt_jitter``).
 
 The numbers are measured on simulated data: they are not the paper's real-world measurement.
 """
@@ -268,6 +269,14 @@ def main(argv=None) -> None:
         "nose down); the model gets the cloud levelled, as predict's --lidar-rpy gives it "
         "(default: the model's sim.sensor_rpy)",
     )
+    p.add_argument(
+        "--tilt-jitter",
+        type=float,
+        default=None,
+        metavar="DEGREES",
+        help="tilt each scene's lidar by up to this much more, degrees (sim.sensor_tilt_jitter; "
+        "default: 0 with --lidar-rpy, else the model's)",
+    )
     add_views_argument(p, "the model's")
     p.add_argument(
         "--view-iou", type=float, default=None, help="inference.view_iou (default: the model's)"
@@ -289,9 +298,16 @@ def main(argv=None) -> None:
         except ConfigError as e:
             p.error(f"--sensor-height: {e}")
         config = dataclasses.replace(config, sim=sim)
-    if args.lidar_rpy is not None:
-        sim = dataclasses.replace(config.sim, sensor_rpy=args.lidar_rpy)
+    if args.lidar_rpy is not None or args.tilt_jitter is not None:
+        tilt = {"sensor_tilt_jitter": 0.0 if args.tilt_jitter is None else args.tilt_jitter}
+        if args.lidar_rpy is not None:
+            tilt["sensor_rpy"] = args.lidar_rpy
+        try:
+            sim = dataclasses.replace(config.sim, **tilt)
+        except ConfigError as e:
+            p.error(f"--tilt-jitter: {e}")
         config = dataclasses.replace(config, sim=sim)
+    if args.lidar_rpy is not None:
         if hint := LidarMount(*args.lidar_rpy).radians_hint():
             print(f"note: {hint}", file=sys.stderr)
     scores = args.score_threshold or (config.inference.score_threshold,)
@@ -325,6 +341,7 @@ def main(argv=None) -> None:
              "seed": args.seed, "intensity_factor": args.intensity_factor,
              "sensor_height": list(config.sim.sensor_height), "z_offset": args.z_offset,
              "sensor_rpy": list(config.sim.sensor_rpy),
+             "sensor_tilt_jitter": config.sim.sensor_tilt_jitter,
              "views": list(inferences[0].views), "view_iou": inferences[0].view_iou}  # fmt: skip
     sweep = []
     for inference, evaluator in zip(inferences, evaluators, strict=True):
@@ -345,6 +362,8 @@ def main(argv=None) -> None:
         head += f", z {args.z_offset:+g} m"
     if any(config.sim.sensor_rpy):
         head += ", lidar tilted roll {:g}, pitch {:g}, yaw {:g} deg".format(*config.sim.sensor_rpy)
+    if config.sim.sensor_tilt_jitter:
+        head += f", lidar tilt jittered by up to {config.sim.sensor_tilt_jitter:g} deg"
     if inferences[0].views != ("identity",):
         head += f", {len(inferences[0].views)} views fused at IoU {inferences[0].view_iou:g}"
     seconds = f"{time.perf_counter() - start:.0f} s"

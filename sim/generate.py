@@ -6,11 +6,12 @@
 
 One call samples B scenes (``scenes.sample_scene``), poses them at the frame time, casts the
 scan pattern's rays from the lidar riding its robot (``sensor.scan``: Warp kernels over the
-batched MJX model/data; a lidar tilted by ``sim.sensor_rpy`` delivers its cloud levelled,
-``mount_rotation``), adds noise and dropout, and derives labels (``labels``): padded
-targets with true-shape footprint masks and instance ids. ``FrameInfo`` carries what the
-``Batch`` has no room for: per-object point counts, visibility and KITTI occlusion level,
-which object each point belongs to, the plan and the sensor pose.
+batched MJX model/data; a lidar tilted by ``sim.sensor_rpy``, or per scene within
+``sim.sensor_tilt_jitter`` of it, delivers its cloud levelled, ``mount_rotation``), adds
+noise and dropout, and derives labels (``labels``): padded targets with true-shape footprint
+masks and instance ids. ``FrameInfo`` carries what the ``Batch`` has no room for:
+per-object point counts, visibility and KITTI occlusion level, which object each point
+belongs to, the plan and the sensor pose.
 
 ``reference_frame`` is the plain sequential pipeline (MuJoCo ``mj_multiRay`` + numpy, one
 frame at a time) on the same scene: the tests' oracle and the benchmark's baseline.
@@ -51,7 +52,7 @@ class FrameInfo:
         or an object that is not a target).
       plan: int32 [B], floor-plan id (``layouts.plan_name``).
       sensor_origin: float32 [B, 3] world position; sensor_yaw: float32 [B] (the level
-        frame's; the lidar's tilt in it is ``config.sim.sensor_rpy``).
+        frame's; the lidar's tilt in it is ``scene.sensor_rpy``).
       time: float32 [B], seconds since the start of the sequence.
       frame_index: int32 [B], scan pattern frame.
       scene: the ``scenes.Scene`` [B] the frame shows (posed at ``time``).
@@ -146,13 +147,20 @@ def _yaw_matrix(yaw: jax.Array) -> jax.Array:
     )  # [..., 3, 3]
 
 
-def mount_rotation(sim: SimConfig) -> np.ndarray | None:
-    """float32 [3, 3], lidar-frame vectors to the level frame (``sim.sensor_rpy``, with
-    ``indoorbev_jax.mount.LidarMount``'s convention); None for a level lidar."""
+def tilted(sim: SimConfig) -> bool:
+    """Whether the lidar may be tilted (``sim.sensor_rpy``, ``sim.sensor_tilt_jitter``); a
+    level lidar takes the path without rotations."""
     from indoorbev_jax.mount import LidarMount
 
-    mount = LidarMount(*sim.sensor_rpy)
-    return mount.rotation().astype(np.float32) if mount.rotated else None
+    return LidarMount(*sim.sensor_rpy).rotated or sim.sensor_tilt_jitter > 0
+
+
+def mount_rotation(sim: SimConfig, scene: scenes_mod.Scene) -> jax.Array | None:
+    """float32 [..., 3, 3], lidar-frame vectors to the level frame (each scene's
+    ``sensor_rpy``, ``indoorbev_jax.mount.LidarMount``'s convention); None when level."""
+    from indoorbev_jax.mount import rpy_matrix
+
+    return rpy_matrix(jnp.asarray(scene.sensor_rpy, jnp.float32), jnp) if tilted(sim) else None
 
 
 def simulate(
@@ -179,7 +187,7 @@ def simulate(
     model = scenes_mod.geom_model(tpl, size)  # geom_size [B, G, 3]: one model per scene
     data = scenes_mod.GeomData(geom_xpos=xpos, geom_xmat=xmat)
     origin, heading = jax.vmap(scenes_mod.sensor_pose)(scene, time)  # [B, 3], [B]
-    tilt = mount_rotation(sim)
+    tilt = mount_rotation(sim, scene)  # [B, 3, 3]
     rot = _yaw_matrix(heading) if tilt is None else _yaw_matrix(heading) @ tilt
     pose = sensor.Pose(origin, rot)
     directions = make_pattern(sim).frame(frame_index).directions  # [R, 3] sensor frame
@@ -189,7 +197,7 @@ def simulate(
     )  # fmt: skip
     scan = sensor.scan(model, data, pose, directions, key, sensor_cfg, reflectivity=refl)
     if tilt is not None:  # the cloud levelled, as LidarMount.levelled delivers it
-        xyz = jnp.einsum("ij,brj->bri", tilt, scan.points[..., :3])
+        xyz = jnp.einsum("bij,brj->bri", tilt, scan.points[..., :3])
         scan = scan.replace(points=scan.points.at[..., :3].set(xyz))
     valid = scan.valid & in_workspace(scan.points[..., :3], config.grid)  # [B, R]
     geom_slot = jnp.asarray(tpl.geom_slot)
@@ -476,8 +484,8 @@ def reference_frame(
     pose, _, _, _ = _np_world_prims(scene, time)
     origin = np.array([*(scene.ego[:2] + scene.ego_velocity * time), scene.sensor_height])
     heading = float(scene.ego[2])
-    tilt = mount_rotation(sim)
-    tilt = np.eye(3) if tilt is None else tilt.astype(np.float64)
+    tilt = mount_rotation(sim, scene)
+    tilt = np.eye(3) if tilt is None else np.asarray(tilt, np.float64)
     rot = np.asarray(_yaw_matrix(jnp.float32(heading)), np.float64) @ tilt  # world <- lidar
     world_dirs = directions @ rot.T
     dist, gid = reference_cast(tpl, size, xpos, xmat, origin, world_dirs, sim.max_range)

@@ -138,9 +138,11 @@ def publish(
     check_seed("seed", seed)
     if hint := mount.radians_hint():
         print(f"indoorbev-sim ros2 publish: note: {hint}", file=sys.stderr, flush=True)
-    # The scans are simulated with the tilt the clouds are published with, whatever
-    # config.sim.sensor_rpy said.
-    sim = dataclasses.replace(config.sim, sensor_rpy=tuple(map(float, lidar_rpy)))
+    # The scans are simulated with the one tilt the clouds are published with, whatever
+    # config.sim.sensor_rpy and sensor_tilt_jitter said.
+    sim = dataclasses.replace(
+        config.sim, sensor_rpy=tuple(map(float, lidar_rpy)), sensor_tilt_jitter=0.0
+    )
     config = dataclasses.replace(config, sim=sim)
     runtime.require_rclpy()
     if record:

@@ -41,6 +41,7 @@ PLACE_ORDER = ("Shelf", "Cabinet", "Sofa", "Table", "Robot", "Person", "Chair", 
 EGO_RADIUS = 0.4  # footprint radius reserved around the robot carrying the lidar
 WALL_GAP = (0.03, 0.12)  # distance between a wall and an object placed against it
 OBJECT_SCALE_JITTER = 0.05  # bank objects are rescaled by up to +-5 %
+TILT_STREAM = 1  # fold_in of a scene's key that draws its lidar tilt
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -191,6 +192,8 @@ class Scene:
       velocity: float32 [S, 2], world m/s (zero for static objects).
       ego: float32 [3], (x, y, heading) of the lidar robot at frame 0; ego_velocity [2].
       sensor_height: float32 [], lidar height above the floor.
+      sensor_rpy: float32 [3], the lidar's roll, pitch, yaw in the robot's level frame,
+        degrees (``sim.sensor_rpy``, tilted by up to ``sim.sensor_tilt_jitter``).
     """
 
     room: layouts.Room
@@ -204,6 +207,7 @@ class Scene:
     ego: jax.Array
     ego_velocity: jax.Array
     sensor_height: jax.Array
+    sensor_rpy: jax.Array
 
 
 def allowed_plans(sim: SimConfig, split: str) -> np.ndarray:
@@ -402,6 +406,12 @@ def sample_scene(key: jax.Array, config: Config, test=False) -> Scene:
     ego = jnp.concatenate([start[pick], heading[pick, None]])
     lo, hi = sim.sensor_height
     sensor_height = lo + (hi - lo) * draws["height"]
+    sensor_rpy = jnp.asarray(sim.sensor_rpy, jnp.float32)
+    if sim.sensor_tilt_jitter:
+        # A key of its own: the draws above, and so every existing dataset, stay as they were.
+        u = jax.random.uniform(jax.random.fold_in(key, TILT_STREAM), (2,))
+        radius, turn = sim.sensor_tilt_jitter * jnp.sqrt(u[0]), 2 * math.pi * u[1]
+        sensor_rpy = sensor_rpy.at[:2].add(radius * jnp.stack([jnp.cos(turn), jnp.sin(turn)]))
 
     # Collision-free placement, one slot after the other; entry 0 of the reserved capsules
     # is the lidar robot's path.
@@ -474,7 +484,7 @@ def sample_scene(key: jax.Array, config: Config, test=False) -> Scene:
     return Scene(
         room=room, on=on, variant=variant, prims=prims, reflectivity=reflectivity,
         background=background, pose=pose, velocity=velocity, ego=ego, ego_velocity=ego_vel,
-        sensor_height=sensor_height,
+        sensor_height=sensor_height, sensor_rpy=sensor_rpy,
     )  # fmt: skip
 
 

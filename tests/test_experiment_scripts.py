@@ -73,6 +73,10 @@ def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, caps
         eval_sim.main(["--model", str(path), "--lidar-rpy", "0,20"])
     assert exit_info.value.code == 2
     assert "--lidar-rpy: expected ROLL,PITCH,YAW in degrees, got '0,20'" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        eval_sim.main(["--model", str(path), "--tilt-jitter", "-3"])
+    assert exit_info.value.code == 2
+    assert "'sim.sensor_tilt_jitter': expected degrees in [0, 90]" in capsys.readouterr().err
 
 
 def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tmp_path, capsys):
@@ -260,6 +264,8 @@ def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
     high = export_model(trees[1], sim(sensor_height=(0.6, 1.5)), tmp_path / "high.msgpack")
     low = export_model(trees[2], sim(sensor_height=(0.15, 0.5)), tmp_path / "low.msgpack")
     assert average_models([paths[0], high, low])[0] == sim(sensor_height=(0.15, 1.5))
+    shaky = export_model(trees[1], sim(sensor_tilt_jitter=8.0), tmp_path / "shaky.msgpack")
+    assert average_models([paths[0], shaky])[0] == sim(sensor_tilt_jitter=8.0)
     turned = export_model(trees[1], sim(sensor_rpy=(0, 0, 360)), tmp_path / "turn.msgpack")
     assert average_models([paths[0], turned])[0].sim.sensor_rpy == (0, 0, 0)  # the same tilt
     tilted = export_model(trees[1], sim(sensor_rpy=(0, 20, 0)), tmp_path / "tilt.msgpack")

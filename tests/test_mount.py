@@ -91,6 +91,11 @@ def test_a_mount_away_from_the_trained_tilt_is_pointed_out():
     a, b = (5.0, 20.0, 0.0), (0.0, 12.0, 30.0)
     angle = Rotation.from_euler("xyz", a, True).inv() * Rotation.from_euler("xyz", b, True)
     assert f"{np.degrees(angle.magnitude()):.1f} deg from" in LidarMount(*b).tilt_hint(a)
+    # Trained within a jitter of the tilt: no note inside it, level-trained included.
+    assert LidarMount(pitch=7.0).tilt_hint((0.0, 0.0, 0.0), 8.0) is None
+    assert LidarMount(roll=-5.0, pitch=15.0).tilt_hint((0.0, 10.0, 0.0), 8.0) is None
+    hint = LidarMount(pitch=20.0).tilt_hint((0.0, 0.0, 0.0), 8.0)
+    assert "lidar within 8 deg of roll 0, pitch 0, yaw 0 deg (sim.sensor_rpy), 20.0 deg" in hint
 
 
 def test_bad_mounts_are_named():
@@ -232,3 +237,17 @@ def test_bag_out_of_a_levelled_run_shares_the_level_frame(model_file, tmp_path):
     np.testing.assert_allclose(pointcloud2_to_points(cloud), want, atol=1e-6)
     labels = P.kitti.read_labels(tmp_path / "o" / "label_2" / "scan.txt", CFG.data)
     np.testing.assert_allclose(markers_to_labels(markers, CFG.data).pos, labels.pos, atol=1e-6)
+
+
+def test_rpy_matrix_is_scipys_extrinsic_xyz_in_numpy_and_jax():
+    """``rpy_matrix`` (the simulator's per-scene tilt, jittable) is ``LidarMount.rotation``."""
+    import jax.numpy as jnp
+
+    from indoorbev_jax.mount import rpy_matrix
+
+    angles = np.random.default_rng(3).uniform(-180, 180, (2, 5, 3))
+    want = Rotation.from_euler("xyz", angles.reshape(-1, 3), degrees=True).as_matrix()
+    np.testing.assert_allclose(rpy_matrix(angles).reshape(-1, 3, 3), want, atol=1e-12)
+    got = np.asarray(rpy_matrix(jnp.asarray(angles, jnp.float32), jnp)).reshape(-1, 3, 3)
+    np.testing.assert_allclose(got, want, atol=2e-6)
+    np.testing.assert_allclose(LidarMount(*angles[0, 0]).rotation(), want[0], atol=1e-12)

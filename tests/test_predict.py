@@ -342,6 +342,15 @@ def test_predict_boxes_come_from_the_masks_or_the_head(model_file, tmp_path, cap
     capsys.readouterr()
     with pytest.raises(ValueError, match=r"another run \(boxes: 'head' -> 'mask'"):
         P.predict(model_file, tmp_path / "scan.bin", tmp_path / "head", verbose=False)
+    # A run from before predict.json recorded "boxes" wrote the head's: it resumes as such.
+    manifest = tmp_path / "head" / "predict.json"
+    record = json.loads(manifest.read_text())
+    manifest.write_text(json.dumps({k: v for k, v in record.items() if k != "boxes"}))
+    with pytest.raises(ValueError, match=r"another run \(boxes: 'head' -> 'mask'"):
+        P.predict(model_file, tmp_path / "scan.bin", tmp_path / "head", verbose=False)
+    summary = P.predict(model_file, tmp_path / "scan.bin", tmp_path / "head", verbose=False,
+                        boxes="head", pictures=False)  # fmt: skip
+    assert summary["resumed_frames"] == 1
     with pytest.raises(SystemExit) as exit_info:
         cli_main(["predict", str(model_file), str(tmp_path / "scan.bin"), "--out",
                   str(tmp_path / "x"), "--boxes", "fit"])  # fmt: skip

@@ -504,6 +504,9 @@ class SimConfig:
     # The lidar's roll, pitch, yaw in the robot's level frame, degrees (URDF rpy, as
     # indoorbev_jax.mount.LidarMount): a tilted sensor's coverage; the cloud comes levelled.
     sensor_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # Each scene's lidar tilted from sensor_rpy by up to this many degrees (its roll and
+    # pitch offsets uniform over a disk of this radius): one model for a range of mounts.
+    sensor_tilt_jitter: float = 0.0
     ego_speed: tuple[float, float] = (0.2, 1.0)  # m/s of the robot carrying the lidar
     # Object slots per class (CLASS_NAMES order): the capacity of the scene template.
     slots_per_class: tuple[int, ...] = (4, 8, 2, 3, 3, 4, 4, 2, 3)
@@ -536,6 +539,9 @@ class SimConfig:
         _check_len("sim.sensor_rpy", self.sensor_rpy, 3)
         if not all(math.isfinite(a) for a in self.sensor_rpy):
             _fail("sim.sensor_rpy", f"expected finite degrees, got {self.sensor_rpy!r}")
+        if not 0.0 <= self.sensor_tilt_jitter <= 90.0:
+            _fail("sim.sensor_tilt_jitter", f"expected degrees in [0, 90], got "
+                  f"{self.sensor_tilt_jitter!r}")  # fmt: skip
         _check_len("sim.slots_per_class", self.slots_per_class, len(CLASS_NAMES))
         if any(n < 0 for n in self.slots_per_class) or not sum(self.slots_per_class):
             _fail("sim.slots_per_class", f"need counts >= 0, not all 0: {self.slots_per_class}")
@@ -689,7 +695,7 @@ class Config:
 
 # Fields added after files recording a config were written, with their defaults (the
 # behaviour before them): ``Config.stable_dict`` leaves them out at the default.
-LATER_FIELDS: dict[str, Any] = {"sim.sensor_rpy": (0.0, 0.0, 0.0)}
+LATER_FIELDS: dict[str, Any] = {"sim.sensor_rpy": (0.0, 0.0, 0.0), "sim.sensor_tilt_jitter": 0.0}
 
 
 def _from_dict(kind, d: dict[str, Any], prefix: str):

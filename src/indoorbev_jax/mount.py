@@ -52,11 +52,7 @@ class LidarMount:
 
     def rotation(self) -> np.ndarray:
         """float64 [3, 3]: R = Rz(yaw) Ry(pitch) Rx(roll), lidar-frame vectors to level."""
-        r, p, y = np.radians([self.roll, self.pitch, self.yaw])
-        rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
-        ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
-        rz = np.array([[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]])
-        return rz @ ry @ rx
+        return rpy_matrix(np.array([self.roll, self.pitch, self.yaw], np.float64))
 
     def z_offset(self, trained_heights: tuple[float, float]) -> float:
         """Metres added to z so the floor lies as it did in training: the height minus the
@@ -126,25 +122,51 @@ class LidarMount:
             )
         return None
 
-    def tilt_hint(self, trained_rpy: tuple[float, float, float]) -> str | None:
-        """A note when the model was trained on a tilted lidar (``sim.sensor_rpy``) and this
-        mount is more than a degree away from it: the model knows that tilt's coverage."""
+    def notes(self, trained) -> list[str]:
+        """The notes (``radians_hint``, ``tilt_hint``) that apply to this mount for a model
+        trained with ``trained`` (its ``config.sim``)."""
+        hints = (
+            self.radians_hint(),
+            self.tilt_hint(trained.sensor_rpy, trained.sensor_tilt_jitter),
+        )
+        return [hint for hint in hints if hint]
+
+    def tilt_hint(
+        self, trained_rpy: tuple[float, float, float], trained_jitter: float = 0.0
+    ) -> str | None:
+        """A note when the model was trained on a tilted lidar (``sim.sensor_rpy``, or tilts
+        within ``sim.sensor_tilt_jitter`` of it) and this mount is further than a degree (or
+        the jitter) from it: the model knows those tilts' coverage."""
         trained = LidarMount(*trained_rpy)
-        if not trained.rotated:
+        if not trained.rotated and not trained_jitter:
             return None
         turn = trained.rotation().T @ self.rotation()
         angle = math.degrees(math.acos(float(np.clip((np.trace(turn) - 1) / 2, -1.0, 1.0))))
-        if angle <= 1.0:
+        if angle <= max(1.0, trained_jitter):
             return None
+        where = f"within {trained_jitter:g} deg of" if trained_jitter else "at"
         return (
-            "the model was trained on a lidar at roll {:g}, pitch {:g}, yaw {:g} deg "
+            "the model was trained on a lidar {} roll {:g}, pitch {:g}, yaw {:g} deg "
             "(sim.sensor_rpy), {:.1f} deg from this mount's --lidar-rpy {:g},{:g},{:g}; pass "
             "your lidar's real tilt, and note the model was scored at its trained tilt "
-            "only".format(*trained_rpy, angle, self.roll, self.pitch, self.yaw)
+            "only".format(where, *trained_rpy, angle, self.roll, self.pitch, self.yaw)
         )
 
 
 LEVEL = LidarMount()  # a level lidar read as it is: the default everywhere
+
+
+def rpy_matrix(rpy_degrees, xp=np):
+    """[..., 3, 3]: R = Rz(yaw) Ry(pitch) Rx(roll) of ``rpy_degrees`` [..., 3] (``LidarMount``'s
+    convention); ``xp`` is numpy or ``jax.numpy`` (the simulator draws a tilt per scene)."""
+    r, p, y = (xp.radians(rpy_degrees[..., i]) for i in range(3))
+    cr, sr, cp, sp, cy, sy = xp.cos(r), xp.sin(r), xp.cos(p), xp.sin(p), xp.cos(y), xp.sin(y)
+    rows = [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
+    return xp.stack([xp.stack(row, -1) for row in rows], -2)
 
 
 def _is_height(value: float) -> bool:

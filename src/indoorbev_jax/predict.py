@@ -154,7 +154,8 @@ def average_models(
     (``sim.sensor_height``, which predict's ``--lidar-height`` treats as trained) are the
     span of all the models' heights. Models trained for different lidar tilts
     (``sim.sensor_rpy``) need ``sensor_rpy``: the tilt the average is recorded for (what
-    ``eval_sim.py`` scores by default and predict's tilt note compares with).
+    ``eval_sim.py`` scores by default and predict's tilt note compares with); the tilt jitter
+    recorded (``sim.sensor_tilt_jitter``) is the largest of the models'.
 
     Args:
       paths: model files or run directories (``load_model``), at least two.
@@ -168,6 +169,7 @@ def average_models(
     flat_first = dict(pairs)
     total = {k: np.array(v, np.float64) for k, v in flat_first.items()}  # a copy
     lo, hi = config.sim.sensor_height
+    jitter = config.sim.sensor_tilt_jitter
     for path in rest:
         other_config, params = load_model(path)
         tilts = [LidarMount(*c.sim.sensor_rpy).rotation() for c in (other_config, config)]
@@ -180,6 +182,7 @@ def average_models(
             )
         lo = min(lo, other_config.sim.sensor_height[0])
         hi = max(hi, other_config.sim.sensor_height[1])
+        jitter = max(jitter, other_config.sim.sensor_tilt_jitter)
         for section in ARCHITECTURE_SECTIONS:
             mine, theirs = getattr(config, section), getattr(other_config, section)
             if mine != theirs:
@@ -204,7 +207,7 @@ def average_models(
                 )
             total[key] += np.asarray(flat[key], np.float64)
     leaves = [(total[k] / len(paths)).astype(np.asarray(v).dtype) for k, v in flat_first.items()]
-    sim = dataclasses.replace(config.sim, sensor_height=(lo, hi))
+    sim = dataclasses.replace(config.sim, sensor_height=(lo, hi), sensor_tilt_jitter=jitter)
     if sensor_rpy is not None:
         sim = dataclasses.replace(sim, sensor_rpy=tuple(map(float, sensor_rpy)))
     config = dataclasses.replace(config, sim=sim)
@@ -453,6 +456,8 @@ def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
             saved = json.loads(manifest.read_text())
         except (OSError, ValueError) as e:
             saved = {"unreadable": str(e)}
+        if isinstance(saved, dict) and "model" in saved:
+            saved.setdefault("boxes", "head")  # runs before the entry wrote the head's boxes
         if saved == run:
             return
         if not overwrite:
@@ -580,9 +585,8 @@ def predict(
     say = functools.partial(print, flush=True) if verbose else (lambda *a, **k: None)
     if mount != LEVEL:
         say(f"lidar mount: {mount.describe(config.sim.sensor_height)}")
-    for hint in (mount.radians_hint(), mount.tilt_hint(config.sim.sensor_rpy)):
-        if hint:
-            print(f"note: {hint}", file=sys.stderr, flush=True)
+    for hint in mount.notes(config.sim):
+        print(f"note: {hint}", file=sys.stderr, flush=True)
     if level_frame and bag_out is None:
         print(f"note: --level-frame {level_frame!r} names the frame of --bag-out's messages; "
               "without --bag-out it is unused (KITTI labels carry no frame id)",

@@ -76,15 +76,22 @@ def test_targets_match_sequential_reference(frames):
     assert mism <= 1e-3 * rays
 
 
-@pytest.mark.parametrize("rpy", [(0.0, 20.0, 0.0), (180.0, 0.0, 30.0)])
-def test_a_tilted_lidar_sees_its_own_coverage_and_delivers_a_level_cloud(rpy):
+@pytest.mark.parametrize(
+    "rpy, jitter", [((0.0, 20.0, 0.0), 0.0), ((180.0, 0.0, 30.0), 0.0), ((0.0, 0.0, 0.0), 15.0)]
+)
+def test_a_tilted_lidar_sees_its_own_coverage_and_delivers_a_level_cloud(rpy, jitter):
     """``sim.sensor_rpy``: rays leave along R d (URDF rpy: pitch +20 is nose down), the
-    cloud comes levelled; checked against MuJoCo's mj_multiRay and the pattern's limits."""
-    cfg = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, sensor_rpy=rpy))
+    cloud comes levelled; checked against MuJoCo's mj_multiRay and the pattern's limits.
+    With ``sim.sensor_tilt_jitter`` each scene has its own tilt, cast and levelled by."""
+    sim = dataclasses.replace(CFG.sim, sensor_rpy=rpy, sensor_tilt_jitter=jitter)
+    cfg = dataclasses.replace(CFG, sim=sim)
     batch, info = jax.tree.map(np.asarray, generate.jitted_generate(cfg, "train", 2)(KEY))
     pattern = generate.make_pattern(cfg.sim)
     dirs = np.asarray(pattern.frame(int(info.frame_index[0])).directions, np.float64)
     lo, hi = np.degrees(generate._elevation_limits(pattern))
+    if jitter:  # two different tilts, neither level, within the jitter
+        offsets = np.linalg.norm(info.scene.sensor_rpy[:, :2], axis=1)
+        assert np.all((offsets > 0.5) & (offsets <= jitter)), info.scene.sensor_rpy
     for b in range(2):
         scene = generate.scene_numpy(info.scene, b)
         rng = np.random.default_rng(0)
@@ -106,6 +113,8 @@ def test_a_tilted_lidar_sees_its_own_coverage_and_delivers_a_level_cloud(rpy):
         # Coverage: the pattern's elevations [lo, hi], tilted, in the level frame.
         el = np.degrees(np.arctan2(mine[:, 2], np.linalg.norm(mine[:, :2], axis=1)))
         azimuth = np.arctan2(mine[:, 1], mine[:, 0])
+        if jitter:
+            continue
         if rpy[1]:  # nose down 20: ahead reaches 20 lower, behind starts 20 higher
             ahead, behind = np.abs(azimuth) < 0.2, np.abs(azimuth) > np.pi - 0.2
             assert lo - 20 - 1.5 <= el[ahead].min() < lo - 20 + 1.5
@@ -268,6 +277,7 @@ def test_true_shape_footprints_round_table_and_l_sofa():
         prims=jax.tree.map(jnp.asarray, prims), reflectivity=jnp.zeros(1),
         background=jnp.zeros(3), pose=jnp.zeros((1, 3)), velocity=jnp.zeros((1, 2)),
         ego=jnp.zeros(3), ego_velocity=jnp.zeros(2), sensor_height=jnp.zeros(()),
+        sensor_rpy=jnp.zeros(3),
     )  # fmt: skip
     c = objects.CLASS_INDEX["Sofa"]
     tpl = types.SimpleNamespace(

@@ -177,3 +177,30 @@ def test_sim_config_validation_names_fields():
         SimConfig(dropout=1.5)
     with pytest.raises(ValueError, match="sim.test_variants"):
         scenes.allowed_variants(SimConfig(test_variants=("Chair/throne",)), "train")
+
+
+def test_tilt_jitter_draws_each_scene_a_tilt_and_moves_no_other_draw(sampled):
+    """``sim.sensor_tilt_jitter``: roll and pitch offsets uniform over a disk of that radius
+    around ``sim.sensor_rpy``, drawn on a key of their own (a dataset's scenes stay put)."""
+    sim = dataclasses.replace(CFG.sim, sensor_rpy=(0.0, 10.0, 30.0), sensor_tilt_jitter=8.0)
+    cfg = dataclasses.replace(CFG, sim=sim)
+    n = 400  # the fixture's NUM keys first, so their scenes can be compared
+    keys = jax.numpy.concatenate(
+        [jax.random.split(jax.random.key(7), NUM), jax.random.split(jax.random.key(8), n - NUM)]
+    )
+    sample = jax.jit(jax.vmap(lambda k: scenes.sample_scene(k, cfg)))
+    scene = jax.tree.map(np.asarray, sample(keys))
+    same = jax.tree.map(lambda a, b: a[:NUM], scene, sampled["train"])
+    for name in ("on", "variant", "pose", "velocity", "ego", "sensor_height", "reflectivity"):
+        np.testing.assert_array_equal(getattr(same, name), getattr(sampled["train"], name))
+    np.testing.assert_array_equal(sampled["train"].sensor_rpy, 0.0)  # the default: level
+    np.testing.assert_array_equal(scene.sensor_rpy[:, 2], 30.0)  # yaw is not jittered
+    offset = scene.sensor_rpy[:, :2] - [0.0, 10.0]
+    radius = np.linalg.norm(offset, axis=1)
+    assert radius.max() <= 8.0 + 1e-4 and radius.max() > 7.5
+    # Uniform over the disk: P(r < R/2) = 1/4, each quadrant 1/4 (binomial sd ~0.022).
+    assert abs((radius < 4.0).mean() - 0.25) < 0.07
+    quadrant = (offset[:, 0] > 0) * 2 + (offset[:, 1] > 0)
+    np.testing.assert_allclose(np.bincount(quadrant, minlength=4) / n, 0.25, atol=0.07)
+    with pytest.raises(ConfigError, match=r"'sim.sensor_tilt_jitter': expected degrees in"):
+        SimConfig(sensor_tilt_jitter=-1.0)

@@ -320,9 +320,8 @@ def run_detect_node(
     if mount != LEVEL:
         print(f"indoorbev ros2 detect: lidar mount: "
               f"{mount.describe(config.sim.sensor_height)}", flush=True)  # fmt: skip
-    for hint in (mount.radians_hint(), mount.tilt_hint(config.sim.sensor_rpy)):
-        if hint:
-            print(f"indoorbev ros2 detect: note: {hint}", file=sys.stderr, flush=True)
+    for hint in mount.notes(config.sim):
+        print(f"indoorbev ros2 detect: note: {hint}", file=sys.stderr, flush=True)
     compile_s = detector.warmup()
     hint = speed_hint(detector.inference_ms(), config.inference.views)
     if hint:
