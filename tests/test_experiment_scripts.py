@@ -441,3 +441,35 @@ def test_eval_sim_z_offset_is_what_predict_does_for_a_lidar_height():
     points, kept = eval_sim.model_input(jnp.asarray(cloud), jnp.ones(len(cloud), bool), cfg.grid,
                                         z_offset=predictor.z_offset)  # fmt: skip
     np.testing.assert_allclose(np.asarray(points)[np.asarray(kept)], padded[valid], atol=1e-6)
+
+
+def test_eval_sim_simulates_the_mount_it_is_given(tmp_path, monkeypatch):
+    """``--lidar-rpy`` fixes one tilt (no jitter), ``--tilt-jitter`` sets the jitter, and
+    without them the model's own ``sim`` mount is simulated."""
+    import dataclasses
+
+    import numpy as np
+
+    from indoorbev_jax.predict import export_model
+
+    eval_sim = _script("eval_sim")
+    tiny = Config.tiny()
+    trained = dataclasses.replace(tiny.sim, sensor_rpy=(0.0, 10.0, 0.0), sensor_tilt_jitter=5.0)
+    params = {"params": {"w": np.zeros(2, np.float32)}}
+    model = str(export_model(params, dataclasses.replace(tiny, sim=trained), tmp_path / "m"))
+    simulated = []
+
+    def capture(config, *args, **kwargs):
+        simulated.append((config.sim.sensor_rpy, config.sim.sensor_tilt_jitter))
+        raise KeyboardInterrupt  # stop before any frame is simulated
+
+    monkeypatch.setattr(eval_sim, "evaluate_sim_sweep", capture)
+    for flags, expected in (
+        ([], ((0.0, 10.0, 0.0), 5.0)),
+        (["--lidar-rpy", "0,20,0"], ((0.0, 20.0, 0.0), 0.0)),
+        (["--tilt-jitter", "3"], ((0.0, 10.0, 0.0), 3.0)),
+        (["--lidar-rpy", "5,0,0", "--tilt-jitter", "2"], ((5.0, 0.0, 0.0), 2.0)),
+    ):
+        with pytest.raises(KeyboardInterrupt):
+            eval_sim.main(["--model", model, "--frames", "2", "--batch", "2", *flags])
+        assert simulated.pop() == expected, flags
