@@ -156,11 +156,16 @@ def tilted(sim: SimConfig) -> bool:
 
 
 def mount_rotation(sim: SimConfig, scene: scenes_mod.Scene) -> jax.Array | None:
-    """float32 [..., 3, 3], lidar-frame vectors to the level frame (each scene's
-    ``sensor_rpy``, ``indoorbev_jax.mount.LidarMount``'s convention); None when level."""
-    from indoorbev_jax.mount import rpy_matrix
+    """float32, lidar-frame vectors to the level frame (``indoorbev_jax.mount.LidarMount``'s
+    convention): [3, 3] for the one tilt ``sim.sensor_rpy``, [..., 3, 3] for each scene's
+    ``sensor_rpy`` with ``sim.sensor_tilt_jitter``; None when level."""
+    from indoorbev_jax.mount import LidarMount, rpy_matrix
 
-    return rpy_matrix(jnp.asarray(scene.sensor_rpy, jnp.float32), jnp) if tilted(sim) else None
+    if not tilted(sim):
+        return None
+    if not sim.sensor_tilt_jitter:  # one matrix, as a fixed tilt's exports were made with
+        return jnp.asarray(LidarMount(*sim.sensor_rpy).rotation(), jnp.float32)
+    return rpy_matrix(jnp.asarray(scene.sensor_rpy, jnp.float32), jnp)
 
 
 def simulate(
@@ -187,7 +192,7 @@ def simulate(
     model = scenes_mod.geom_model(tpl, size)  # geom_size [B, G, 3]: one model per scene
     data = scenes_mod.GeomData(geom_xpos=xpos, geom_xmat=xmat)
     origin, heading = jax.vmap(scenes_mod.sensor_pose)(scene, time)  # [B, 3], [B]
-    tilt = mount_rotation(sim, scene)  # [B, 3, 3]
+    tilt = mount_rotation(sim, scene)  # [3, 3] or [B, 3, 3]
     rot = _yaw_matrix(heading) if tilt is None else _yaw_matrix(heading) @ tilt
     pose = sensor.Pose(origin, rot)
     directions = make_pattern(sim).frame(frame_index).directions  # [R, 3] sensor frame
@@ -197,7 +202,8 @@ def simulate(
     )  # fmt: skip
     scan = sensor.scan(model, data, pose, directions, key, sensor_cfg, reflectivity=refl)
     if tilt is not None:  # the cloud levelled, as LidarMount.levelled delivers it
-        xyz = jnp.einsum("bij,brj->bri", tilt, scan.points[..., :3])
+        per_scene = "bij" if tilt.ndim == 3 else "ij"
+        xyz = jnp.einsum(f"{per_scene},brj->bri", tilt, scan.points[..., :3])
         scan = scan.replace(points=scan.points.at[..., :3].set(xyz))
     valid = scan.valid & in_workspace(scan.points[..., :3], config.grid)  # [B, R]
     geom_slot = jnp.asarray(tpl.geom_slot)

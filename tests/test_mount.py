@@ -95,7 +95,8 @@ def test_a_mount_away_from_the_trained_tilt_is_pointed_out():
     assert LidarMount(pitch=7.0).tilt_hint((0.0, 0.0, 0.0), 8.0) is None
     assert LidarMount(roll=-5.0, pitch=15.0).tilt_hint((0.0, 10.0, 0.0), 8.0) is None
     hint = LidarMount(pitch=20.0).tilt_hint((0.0, 0.0, 0.0), 8.0)
-    assert "lidar within 8 deg of roll 0, pitch 0, yaw 0 deg (sim.sensor_rpy), 20.0 deg" in hint
+    assert "lidar within 8 deg of roll 0, pitch 0, yaw 0 deg (sim.sensor_rpy, " in hint
+    assert "sensor_tilt_jitter), 20.0 deg from this mount's" in hint
 
 
 def test_bad_mounts_are_named():

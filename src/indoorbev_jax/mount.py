@@ -144,12 +144,14 @@ class LidarMount:
         angle = math.degrees(math.acos(float(np.clip((np.trace(turn) - 1) / 2, -1.0, 1.0))))
         if angle <= max(1.0, trained_jitter):
             return None
-        where = f"within {trained_jitter:g} deg of" if trained_jitter else "at"
+        where, fields = "at", "sim.sensor_rpy"
+        if trained_jitter:
+            where, fields = f"within {trained_jitter:g} deg of", fields + ", sensor_tilt_jitter"
         return (
             "the model was trained on a lidar {} roll {:g}, pitch {:g}, yaw {:g} deg "
-            "(sim.sensor_rpy), {:.1f} deg from this mount's --lidar-rpy {:g},{:g},{:g}; pass "
+            "({}), {:.1f} deg from this mount's --lidar-rpy {:g},{:g},{:g}; pass "
             "your lidar's real tilt, and note the model was scored at its trained tilt "
-            "only".format(where, *trained_rpy, angle, self.roll, self.pitch, self.yaw)
+            "only".format(where, *trained_rpy, fields, angle, self.roll, self.pitch, self.yaw)
         )
 
 

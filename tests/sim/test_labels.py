@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from indoorbev_sim import generate, labels, objects, scenes
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data.rasterize import instance_ids_from_masks
@@ -77,8 +78,10 @@ def test_targets_match_sequential_reference(frames):
 
 
 @pytest.mark.parametrize(
-    "rpy, jitter", [((0.0, 20.0, 0.0), 0.0), ((180.0, 0.0, 30.0), 0.0), ((0.0, 0.0, 0.0), 15.0)]
-)
+    "rpy, jitter",
+    [((0.0, 20.0, 0.0), 0.0), ((180.0, 0.0, 30.0), 0.0), ((0.0, 0.0, 0.0), 15.0),
+     ((0.0, 10.0, 0.0), 8.0)],
+)  # fmt: skip
 def test_a_tilted_lidar_sees_its_own_coverage_and_delivers_a_level_cloud(rpy, jitter):
     """``sim.sensor_rpy``: rays leave along R d (URDF rpy: pitch +20 is nose down), the
     cloud comes levelled; checked against MuJoCo's mj_multiRay and the pattern's limits.
@@ -89,8 +92,8 @@ def test_a_tilted_lidar_sees_its_own_coverage_and_delivers_a_level_cloud(rpy, ji
     pattern = generate.make_pattern(cfg.sim)
     dirs = np.asarray(pattern.frame(int(info.frame_index[0])).directions, np.float64)
     lo, hi = np.degrees(generate._elevation_limits(pattern))
-    if jitter:  # two different tilts, neither level, within the jitter
-        offsets = np.linalg.norm(info.scene.sensor_rpy[:, :2], axis=1)
+    if jitter:  # two different tilts, neither the nominal one, within the jitter
+        offsets = np.linalg.norm(info.scene.sensor_rpy[:, :2] - rpy[:2], axis=1)
         assert np.all((offsets > 0.5) & (offsets <= jitter)), info.scene.sensor_rpy
     for b in range(2):
         scene = generate.scene_numpy(info.scene, b)
@@ -113,7 +116,11 @@ def test_a_tilted_lidar_sees_its_own_coverage_and_delivers_a_level_cloud(rpy, ji
         # Coverage: the pattern's elevations [lo, hi], tilted, in the level frame.
         el = np.degrees(np.arctan2(mine[:, 2], np.linalg.norm(mine[:, :2], axis=1)))
         azimuth = np.arctan2(mine[:, 1], mine[:, 0])
-        if jitter:
+        if jitter:  # back in this scene's own sensor frame, the pattern's elevations
+            tilt = Rotation.from_euler("xyz", info.scene.sensor_rpy[b], degrees=True)
+            own = mine @ tilt.as_matrix()  # R^T p
+            el = np.degrees(np.arctan2(own[:, 2], np.linalg.norm(own[:, :2], axis=1)))
+            assert el.min() >= lo - 0.5 and el.max() <= hi + 0.5 and el.min() < lo + 2.0
             continue
         if rpy[1]:  # nose down 20: ahead reaches 20 lower, behind starts 20 higher
             ahead, behind = np.abs(azimuth) < 0.2, np.abs(azimuth) > np.pi - 0.2
