@@ -162,13 +162,15 @@ def rpy_matrix(rpy_degrees, xp=np):
     """[..., 3, 3]: R = Rz(yaw) Ry(pitch) Rx(roll) of ``rpy_degrees`` [..., 3] (``LidarMount``'s
     convention); ``xp`` is numpy or ``jax.numpy`` (the simulator draws a tilt per scene)."""
     r, p, y = (xp.radians(rpy_degrees[..., i]) for i in range(3))
-    cr, sr, cp, sp, cy, sy = xp.cos(r), xp.sin(r), xp.cos(p), xp.sin(p), xp.cos(y), xp.sin(y)
-    rows = [
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ]
-    return xp.stack([xp.stack(row, -1) for row in rows], -2)
+    zero, one = xp.zeros_like(r), xp.ones_like(r)
+
+    def matrix(rows):
+        return xp.stack([xp.stack(row, -1) for row in rows], -2)
+
+    rx = matrix([[one, zero, zero], [zero, xp.cos(r), -xp.sin(r)], [zero, xp.sin(r), xp.cos(r)]])
+    ry = matrix([[xp.cos(p), zero, xp.sin(p)], [zero, one, zero], [-xp.sin(p), zero, xp.cos(p)]])
+    rz = matrix([[xp.cos(y), -xp.sin(y), zero], [xp.sin(y), xp.cos(y), zero], [zero, zero, one]])
+    return rz @ ry @ rx
 
 
 def _is_height(value: float) -> bool:
