@@ -252,3 +252,22 @@ def test_rpy_matrix_is_scipys_extrinsic_xyz_in_numpy_and_jax():
     got = np.asarray(rpy_matrix(jnp.asarray(angles, jnp.float32), jnp)).reshape(-1, 3, 3)
     np.testing.assert_allclose(got, want, atol=2e-6)
     np.testing.assert_allclose(LidarMount(*angles[0, 0]).rotation(), want[0], atol=1e-12)
+
+
+def test_the_shipped_tilted_model_is_the_level_ones_architecture_for_pitch_0_to_20():
+    """models/indoorbev_small_tilted.msgpack (docs/ROBOT.md "Mount"): the level model's
+    architecture, trained on pitch 10 +- 10; no tilt note from 0 to 20 degrees down."""
+    from pathlib import Path
+
+    from indoorbev_jax.predict import ARCHITECTURE_SECTIONS, load_model
+
+    models = Path(__file__).resolve().parents[1] / "models"
+    level, _ = load_model(models / "indoorbev_small.msgpack")
+    tilted, _ = load_model(models / "indoorbev_small_tilted.msgpack")
+    for section in ARCHITECTURE_SECTIONS:
+        assert getattr(tilted, section) == getattr(level, section), section
+    assert (tilted.sim.sensor_rpy, tilted.sim.sensor_tilt_jitter) == ((0.0, 10.0, 0.0), 10.0)
+    assert (level.sim.sensor_rpy, level.sim.sensor_tilt_jitter) == ((0.0, 0.0, 0.0), 0.0)
+    for pitch in (0.0, 5.0, 15.0, 20.0):
+        assert LidarMount(pitch=pitch).notes(tilted.sim) == [], pitch
+    assert "within 10 deg of" in LidarMount(pitch=-10.0).notes(tilted.sim)[0]

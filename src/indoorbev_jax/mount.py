@@ -150,8 +150,17 @@ class LidarMount:
         return (
             "the model was trained on a lidar {} roll {:g}, pitch {:g}, yaw {:g} deg "
             "({}), {:.1f} deg from this mount's --lidar-rpy {:g},{:g},{:g}; pass "
-            "your lidar's real tilt, and note the model was scored at its trained tilt "
-            "only".format(where, *trained_rpy, fields, angle, self.roll, self.pitch, self.yaw)
+            "your lidar's real tilt, and note the model was scored at its trained {} "
+            "only".format(
+                where,
+                *trained_rpy,
+                fields,
+                angle,
+                self.roll,
+                self.pitch,
+                self.yaw,
+                "tilts" if trained_jitter else "tilt",
+            )
         )
 
 
