@@ -81,7 +81,16 @@ def test_full_turns_and_inf_points_are_no_rotation_and_no_warning():
 
 
 def test_a_mount_away_from_the_trained_tilt_is_pointed_out():
-    assert LidarMount(pitch=20.0).tilt_hint((0.0, 0.0, 0.0)) is None  # level-trained: no note
+    # Level-trained: a tilt beyond LEVEL_TOLERANCE (2 degrees) is pointed out, a yaw is not.
+    for quiet in (LidarMount(pitch=1.9), LidarMount(roll=1.0, pitch=1.5), LidarMount(yaw=90.0)):
+        assert quiet.tilt_hint((0.0, 0.0, 0.0)) is None, quiet
+    hint = LidarMount(roll=3.0, pitch=4.0, yaw=45.0).tilt_hint((0.0, 0.0, 0.0))
+    tilt = np.degrees(np.arccos(np.cos(np.radians(3.0)) * np.cos(np.radians(4.0))))
+    assert (
+        f"trained on a level lidar and this mount's --lidar-rpy 3,4,45 tilts it {tilt:.1f} deg"
+        in hint
+    )
+    assert "tilts it 180.0 deg" in LidarMount(roll=180.0).tilt_hint((0.0, 0.0, 0.0))
     assert LidarMount(pitch=20.5).tilt_hint((0.0, 20.0, 0.0)) is None  # within a degree
     assert LidarMount(yaw=360.0, pitch=20.0).tilt_hint((0.0, 20.0, 0.0)) is None
     # The angle between the two orientations, against scipy's rotation magnitude.
@@ -271,3 +280,7 @@ def test_the_shipped_tilted_model_is_the_level_ones_architecture_for_pitch_0_to_
     for pitch in (0.0, 5.0, 15.0, 20.0):
         assert LidarMount(pitch=pitch).notes(tilted.sim) == [], pitch
     assert "within 10 deg of" in LidarMount(pitch=-10.0).notes(tilted.sim)[0]
+    # The level model points a lidar tilted 5 degrees to models trained on tilts.
+    assert (
+        "(sim.sensor_tilt_jitter, docs/ROBOT.md 'Mount')" in LidarMount(pitch=5).notes(level.sim)[0]
+    )

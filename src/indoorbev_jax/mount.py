@@ -134,12 +134,22 @@ class LidarMount:
     def tilt_hint(
         self, trained_rpy: tuple[float, float, float], trained_jitter: float = 0.0
     ) -> str | None:
-        """A note when the model was trained on a tilted lidar (``sim.sensor_rpy``, or tilts
-        within ``sim.sensor_tilt_jitter`` of it) and this mount is further than a degree (or
-        the jitter) from it: the model knows those tilts' coverage."""
+        """A note when this mount is not the model's: one tilted further than
+        ``LEVEL_TOLERANCE`` degrees for a model trained on a level lidar, or one further than
+        a degree (or the jitter) from the tilt the model was trained on (``sim.sensor_rpy``,
+        or tilts within ``sim.sensor_tilt_jitter`` of it). A model knows its tilts' coverage."""
         trained = LidarMount(*trained_rpy)
         if not trained.rotated and not trained_jitter:
-            return None
+            # Yaw leaves a level lidar level: only the tilt of its z axis counts.
+            tilt = math.degrees(math.acos(float(np.clip(self.rotation()[2, 2], -1.0, 1.0))))
+            if tilt <= LEVEL_TOLERANCE:
+                return None
+            return (
+                f"the model was trained on a level lidar and this mount's --lidar-rpy "
+                f"{self.roll:g},{self.pitch:g},{self.yaw:g} tilts it {tilt:.1f} deg: levelling "
+                "cannot show the model what the tilt hides, so expect lower scores; a model "
+                "trained on tilts does better (sim.sensor_tilt_jitter, docs/ROBOT.md 'Mount')"
+            )
         turn = trained.rotation().T @ self.rotation()
         angle = math.degrees(math.acos(float(np.clip((np.trace(turn) - 1) / 2, -1.0, 1.0))))
         if angle <= max(1.0, trained_jitter):
@@ -165,6 +175,9 @@ class LidarMount:
 
 
 LEVEL = LidarMount()  # a level lidar read as it is: the default everywhere
+# Degrees of tilt a level-trained model takes without a note (2 cost the shipped model about
+# 2 points of AP@0.50, 5 about 11: docs/ROBOT.md "Mount").
+LEVEL_TOLERANCE = 2.0
 
 
 def rpy_matrix(rpy_degrees, xp=np):
