@@ -147,25 +147,16 @@ def _yaw_matrix(yaw: jax.Array) -> jax.Array:
     )  # [..., 3, 3]
 
 
-def tilted(sim: SimConfig) -> bool:
-    """Whether the lidar may be tilted (``sim.sensor_rpy``, ``sim.sensor_tilt_jitter``); a
-    level lidar takes the path without rotations."""
-    from indoorbev_jax.mount import LidarMount
-
-    return LidarMount(*sim.sensor_rpy).rotated or sim.sensor_tilt_jitter > 0
-
-
 def mount_rotation(sim: SimConfig, scene: scenes_mod.Scene) -> jax.Array | None:
     """float32, lidar-frame vectors to the level frame (``indoorbev_jax.mount.LidarMount``'s
-    convention): [3, 3] for the one tilt ``sim.sensor_rpy``, [..., 3, 3] for each scene's
-    ``sensor_rpy`` with ``sim.sensor_tilt_jitter``; None when level."""
+    convention): [..., 3, 3] for each scene's ``sensor_rpy`` with ``sim.sensor_tilt_jitter``,
+    [3, 3] for the one tilt ``sim.sensor_rpy``; None when level."""
     from indoorbev_jax.mount import LidarMount, rpy_matrix
 
-    if not tilted(sim):
-        return None
-    if not sim.sensor_tilt_jitter:  # one matrix, as a fixed tilt's exports were made with
-        return jnp.asarray(LidarMount(*sim.sensor_rpy).rotation(), jnp.float32)
-    return rpy_matrix(jnp.asarray(scene.sensor_rpy, jnp.float32), jnp)
+    if sim.sensor_tilt_jitter:
+        return rpy_matrix(jnp.asarray(scene.sensor_rpy, jnp.float32), jnp)
+    mount = LidarMount(*sim.sensor_rpy)  # one matrix, as a fixed tilt's exports were made with
+    return jnp.asarray(mount.rotation(), jnp.float32) if mount.rotated else None
 
 
 def simulate(

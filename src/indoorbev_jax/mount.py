@@ -65,21 +65,23 @@ class LidarMount:
     def levelled(self, points: np.ndarray) -> np.ndarray:
         """float32 [N, 4]: ``points`` [N, 4] (x, y, z, intensity) rotated into the level
         frame (no height move); intensity (and NaN) carried through."""
-        points = np.asarray(points, np.float32).reshape(-1, 4)
-        out = points.copy()
-        if self.rotated:
-            with np.errstate(invalid="ignore"):  # an Inf coordinate: NaN, invalid anyway
-                out[:, :3] = points[:, :3].astype(np.float64) @ self.rotation().T
-        return out
+        return self._turned(points, transpose=True)
 
     def unlevelled(self, points: np.ndarray) -> np.ndarray:
         """float32 [N, 4]: the inverse of ``levelled``, level-frame ``points`` as the tilted
         lidar delivers them (R^T p)."""
+        return self._turned(points, transpose=False)
+
+    def _turned(self, points: np.ndarray, transpose: bool) -> np.ndarray:
+        """float32 [N, 4]: each point's xyz times R^T (R p) or R (R^T p), in float64."""
         points = np.asarray(points, np.float32).reshape(-1, 4)
         out = points.copy()
         if self.rotated:
-            with np.errstate(invalid="ignore"):
-                out[:, :3] = points[:, :3].astype(np.float64) @ self.rotation()
+            rotation = self.rotation()
+            with np.errstate(invalid="ignore"):  # an Inf coordinate: NaN, invalid anyway
+                out[:, :3] = points[:, :3].astype(np.float64) @ (
+                    rotation.T if transpose else rotation
+                )
         return out
 
     def apply(self, points: np.ndarray, trained_heights: tuple[float, float]) -> np.ndarray:
