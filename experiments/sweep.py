@@ -10,7 +10,9 @@ Rerunning the same command after a kill resumes from the latest checkpoint.
 from __future__ import annotations
 
 import argparse
+import sys
 
+from indoorbev_jax.cli import exit_with
 from indoorbev_jax.config import add_config_arguments, config_from_args
 from indoorbev_jax.sweep import run_sweep, stack_hypers
 
@@ -18,7 +20,7 @@ from indoorbev_jax.sweep import run_sweep, stack_hypers
 WEIGHTS = ("cls", "dice", "focal", "dims", "pos", "yaw", "background", "seed")
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--workdir", required=True, help="sweep directory (resumed when it exists)")
     p.add_argument("--data", default=None, help="KITTI-style folder (default: simulator)")
@@ -41,9 +43,14 @@ def main(argv=None) -> None:
         hypers = stack_hypers(config, args.learning_rates, overrides)
     except ValueError as e:
         p.error(str(e))
-    run_sweep(config, args.workdir, hypers, args.data, skip_bad_frames=args.skip_bad_frames,
-              progress=not args.no_progress)  # fmt: skip
+    try:
+        run_sweep(config, args.workdir, hypers, args.data, skip_bad_frames=args.skip_bad_frames,
+                  progress=not args.no_progress)  # fmt: skip
+    except (ValueError, OSError) as e:  # refusals and bad data: their message names the cause
+        print(f"sweep.py: error: {e}", file=sys.stderr)
+        return 2
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    exit_with(main, "sweep.py")  # Ctrl-C: one line and status 130

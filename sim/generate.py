@@ -524,8 +524,8 @@ def reference_frame(
         [c * d[:, 0] + sn * d[:, 1], -sn * d[:, 0] + c * d[:, 1],
          scene.prims.dims[:, 2] / 2 - origin[2]], -1
     )  # fmt: skip
-    inside = (np.abs(pos[:, 0]) <= g.x_range[1]) & (np.abs(pos[:, 1]) <= g.y_range[1])
-    inside &= (pos[:, 0] >= g.x_range[0]) & (pos[:, 1] >= g.y_range[0])
+    inside = (pos[:, 0] >= g.x_range[0]) & (pos[:, 0] <= g.x_range[1])
+    inside &= (pos[:, 1] >= g.y_range[0]) & (pos[:, 1] <= g.y_range[1])
     return {
         "points": np.concatenate([xyz, np.zeros((len(xyz), 1))], -1) * valid[:, None],
         "valid": valid,

@@ -319,6 +319,18 @@ def test_train_script_refusals_are_one_line(tmp_path, capsys, monkeypatch):
     assert "Traceback" not in err
 
 
+def test_sweep_script_refusals_are_one_line(tmp_path, capsys):
+    """As train.py: a refused resume (another sweep's settings) is one line, status 2."""
+    sweep = _script("sweep")
+    (tmp_path / "config.json").write_text(Config.small().to_json())
+    argv = ["--preset", "tiny", "--workdir", str(tmp_path), "--learning-rates", "1e-4", "2e-4"]
+    status = sweep.main(argv)
+    err = capsys.readouterr().err
+    assert status == 2
+    assert "sweep.py: error: " in err and "the workdir holds a run with another config" in err
+    assert "Traceback" not in err
+
+
 def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
     """Under one root, val frame i and test frame i shared their sensor noise key, frame time
     and scan pattern frame (and most object draws), so choices made on val were made on

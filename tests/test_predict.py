@@ -606,6 +606,26 @@ def test_auto_intensity_stays_livox_once_seen(model_file):
     assert fresh.last_intensity_factor == 1.0
 
 
+def test_auto_intensity_ignores_points_outside_the_workspace(model_file):
+    """A garbage cloud (1e30 m, NaN) with high intensities must not switch "auto" to
+    Livox units for the real frames after it: only the workspace's points count."""
+    config, params = P.load_model(model_file)
+    predictor = P.Predictor(config, params)
+    (unit,) = _scans(1)
+    garbage = np.full((50, 4), 1e30, np.float32)
+    garbage[:10, :3] = np.nan
+    garbage[:, 3] = 200.0
+    predictor.prepare(garbage)
+    padded, valid, _ = predictor.prepare(unit)
+    assert predictor.last_intensity_factor == 1.0
+    np.testing.assert_allclose(padded[valid, 3], unit[valid[: len(unit)], 3][: valid.sum()])
+    far = unit.copy()
+    far[:5, :3] = (40.0, 0.0, 0.0)  # outside the workspace, beside the valid points
+    far[:5, 3] = 200.0
+    predictor.prepare(far)
+    assert predictor.last_intensity_factor == 1.0
+
+
 def test_input_listing_skips_hidden_files_and_reads_upper_case_bin(tmp_path):
     """macOS ``._<id>.bin`` metadata next to a scan is not a frame (its bytes once read as a
     cloud with intensity > 1 switched "auto" intensity for the real frames); SCAN.BIN is a

@@ -298,6 +298,32 @@ def test_bad_training_labels_and_an_empty_val_split_stop_the_start(data, tmp_pat
     assert not (workdir / "config.json").exists()
 
 
+def test_a_malformed_validation_frame_is_named_and_skipped_when_asked(data, tmp_path, caplog):
+    """--skip-bad-frames covers the val split too (it stopped the start), and only the
+    frames validation uses are read."""
+    import shutil
+
+    own = tmp_path / "own"
+    shutil.copytree(data, own)
+    val_ids = kitti.read_split(own, "val")
+    bad = own / "velodyne" / f"{val_ids[0]}.bin"
+    bad.write_bytes(bad.read_bytes()[:100])
+    with pytest.raises(kitti.DatasetError, match=rf"{val_ids[0]}\.bin"):
+        T.make_sources(CFG, str(own), 0, skip_bad=False)
+    with caplog.at_level("WARNING"):
+        _, val = T.make_sources(CFG, str(own), 0, skip_bad=True)
+    assert f"skipping malformed validation frame {val_ids[0]}" in caplog.text
+    frames = sum(int(b.points.shape[0]) for b in val)
+    want = min(len(val_ids) - 1, CFG.train.eval_batches * CFG.train.batch_size)
+    assert frames == want
+    good = KittiDataset(own, "val", CFG).load(1)[0]  # the first readable frame leads
+    np.testing.assert_array_equal(val[0].points[0], good.points)
+    # A sweep does not validate: no val split needed.
+    (own / "val.txt").unlink()
+    source, none = T.make_sources(CFG, str(own), 0, skip_bad=False, validate=False)
+    assert none == [] and source is not None
+
+
 class _Stop(Exception):
     """Raised by the first train step of ``quick_start``: the start's checks have run."""
 
@@ -699,3 +725,35 @@ def test_train_step_lowers_to_plain_xla_ops(batch, step_fn):
     state = T.init_state(CFG, jax.random.key(0))
     lowered = step_fn.lower(state, batch, jax.random.key(1), T.Hyper.from_config(CFG))
     assert "custom_call" not in lowered.as_text()
+
+
+@pytest.mark.parametrize("damage", ["empty", "garbage"])
+def test_partial_latest_checkpoint_falls_back_and_is_written_anew(tmp_path, caplog, damage):
+    """An empty step folder (a partial save) must not make the intact older checkpoints
+    unreadable too, and a run that fell back past a bad step saves that step anew."""
+    import shutil
+
+    state = T.TrainState(
+        step=jnp.int32(0), params={"w": jnp.arange(4.0)}, opt_state=(), skipped=jnp.int32(0)
+    )
+    ckpt = T.Checkpoints(tmp_path, keep=3)
+    for step in (1, 2):
+        ckpt.save(state.replace(step=jnp.int32(step), params={"w": jnp.arange(4.0) * step}))
+    ckpt.close()
+    bad = tmp_path / "checkpoints" / "2"
+    if damage == "empty":
+        shutil.rmtree(bad)
+        bad.mkdir()
+    else:
+        for f in bad.rglob("*"):
+            if f.is_file():
+                f.write_bytes(b"garbage")
+    ckpt = T.Checkpoints(tmp_path, keep=3)
+    with caplog.at_level("WARNING"):
+        restored = ckpt.restore(state)
+    assert restored is not None and int(restored.step) == 1
+    ckpt.save(state.replace(step=jnp.int32(2), params={"w": jnp.arange(4.0) * 7}))
+    ckpt.close()
+    again = T.Checkpoints(tmp_path, keep=3).restore(state)
+    assert int(again.step) == 2
+    np.testing.assert_array_equal(again.params["w"], np.arange(4.0) * 7)

@@ -152,7 +152,9 @@ def box_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig
     """Moves, turns and rescales single objects together with their points and footprints.
 
     An object whose moved footprint would overlap another object's more than before keeps
-    its original pose (one pass: every object is checked against the others' new poses).
+    its original pose. Every object is checked against the others' new poses, again after
+    each round of undone moves (an undone object returns to a place another may have moved
+    into), until no kept move overlaps more than before.
     """
     t = frame.targets
     m = t.classes.shape[0]
@@ -172,8 +174,16 @@ def box_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig
         count = masks.sum(0)  # [H, W]
         return (masks & (count - masks > 0)).sum((1, 2))  # [M] cells shared with others
 
-    candidate = jnp.where(on[:, None, None], moved_masks, t.masks) & t.valid[:, None, None]
-    on &= overlap(candidate) <= overlap(t.masks)
+    before = overlap(t.masks)
+
+    def undo(carry):
+        on, _ = carry
+        candidate = jnp.where(on[:, None, None], moved_masks, t.masks) & t.valid[:, None, None]
+        kept = on & (overlap(candidate) <= before)
+        return kept, (kept != on).any()
+
+    # Each round only undoes moves, so at most M rounds; usually one or two.
+    on, _ = jax.lax.while_loop(lambda carry: carry[1], undo, (on, jnp.array(True)))
     masks = jnp.where(on[:, None, None], moved_masks, t.masks)
     shift_on = jnp.where(on[:, None], shift, 0.0)
     dyaw_on = jnp.where(on, dyaw, 0.0)

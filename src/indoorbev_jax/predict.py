@@ -35,7 +35,7 @@ from indoorbev_jax.boxes import check_box_source, segment_boxes
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data import kitti
 from indoorbev_jax.data.dataset import pad_points
-from indoorbev_jax.geometry import wrap_angle
+from indoorbev_jax.geometry import in_workspace, wrap_angle
 from indoorbev_jax.inference import apply_views, panoptic_inference, unview_cells
 from indoorbev_jax.models import IndoorBEV
 from indoorbev_jax.mount import LEVEL, LidarMount, check_level_frame
@@ -341,12 +341,14 @@ class Predictor:
         ``data.max_points``, thinned evenly)). Also kept as ``last_counts``, and the
         intensity's factor as ``last_intensity_factor``."""
         cfg = self.config
-        factor = intensity_factor(self.intensity, points)
+        points = self.mount.apply(points, cfg.sim.sensor_height)
+        # "auto" reads the workspace's points only: a garbage frame's (1e30 m, NaN)
+        # intensities must not switch the units of every later frame.
+        factor = intensity_factor(self.intensity, points[in_workspace(points, cfg.grid)])
         if self.intensity == "auto":
             self._auto_factor = factor = min(factor, self._auto_factor)
         self.last_intensity_factor = factor
-        points = self.mount.apply(points, cfg.sim.sensor_height)
-        points = normalize_intensity(points, self.last_intensity_factor)
+        points = normalize_intensity(points, factor)
         padded, valid, self.last_counts = pad_points(
             points, cfg.grid, cfg.data.max_points, cfg.sim.min_range, (0.0, 0.0, self.z_offset)
         )

@@ -126,7 +126,7 @@ def run_sweep(
     restored = checkpoints.restore(states)
     start = 0 if restored is None else int(np.asarray(restored.step)[0])
     states = states if restored is None else restored
-    source, _ = make_sources(config, data, t.seed, skip_bad=skip_bad_frames)
+    source, _ = make_sources(config, data, t.seed, skip_bad=skip_bad_frames, validate=False)
     log_path = workdir / "sweep.jsonl"
     if log_path.exists():
         truncate_log(log_path, start)

@@ -496,9 +496,13 @@ class Checkpoints:
         """``metric`` None: no ``best/`` (a sweep, which does not validate)."""
         self.metric = metric
         options = ocp.CheckpointManagerOptions(max_to_keep=keep, enable_async_checkpointing=False)
+        # One unnamed item, said up front: left to infer it, orbax reads the layout off the
+        # newest step folder, and a partial one (empty, no default/) makes every step fail.
+        single = ocp.StandardCheckpointHandler
         self.latest = ocp.CheckpointManager(
-            Path(workdir).absolute() / "checkpoints", options=options
+            Path(workdir).absolute() / "checkpoints", options=options, item_handlers=single()
         )
+        self.unreadable: set[int] = set()  # steps restore() skipped: save() replaces them
         if metric is None:
             self.best = None
             return
@@ -508,11 +512,16 @@ class Checkpoints:
             best_mode="max",
             enable_async_checkpointing=False,
         )
-        self.best = ocp.CheckpointManager(Path(workdir).absolute() / "best", options=best_options)
+        self.best = ocp.CheckpointManager(
+            Path(workdir).absolute() / "best", options=best_options, item_handlers=single()
+        )
 
     def save(self, state: TrainState, step: int | None = None) -> None:
         """Saves ``state`` as ``step`` (default ``state.step``; a sweep's states hold K)."""
         step = int(state.step) if step is None else step
+        if step in self.unreadable:  # a corrupt one the run fell back past: write it anew
+            self.latest.delete(step)
+            self.unreadable.discard(step)
         if step not in self.latest.all_steps():
             self.latest.save(step, args=ocp.args.StandardSave(state))
 
@@ -532,6 +541,7 @@ class Checkpoints:
                 return self.latest.restore(step, args=ocp.args.StandardRestore(abstract))
             except Exception as e:  # noqa: BLE001 - any unreadable checkpoint falls back
                 log.warning("checkpoint %d is unreadable (%s); trying an older one", step, e)
+                self.unreadable.add(step)
         return None
 
     def close(self) -> None:
@@ -641,23 +651,51 @@ def _scalars(metrics: dict) -> dict:
 GT_DATABASE_BATCHES = 8
 
 
-def make_sources(config: Config, data: str | None, seed: int, skip_bad: bool):
+def _val_batches(val_ds, batch_size: int, batches: int, skip_bad: bool) -> list[Batch]:
+    """The first ``batches`` validation batches; with ``skip_bad`` a malformed frame is
+    reported by name and left out, as for training (else its error stops the start)."""
+    from indoorbev_jax.data.dataset import collate
+
+    items = []
+    for index in range(len(val_ds)):
+        if len(items) == batches * batch_size:
+            break
+        try:
+            items.append(val_ds.load(index)[0])
+        except (kitti.DatasetError, OSError) as e:
+            if not skip_bad:
+                raise
+            log.warning("skipping malformed validation frame %s: %s", val_ds.ids[index], e)
+    if not items:
+        raise kitti.DatasetError(f"{val_ds.root / 'val.txt'}: no readable frame to validate on")
+    return [collate(items[k : k + batch_size]) for k in range(0, len(items), batch_size)]
+
+
+def make_sources(
+    config: Config, data: str | None, seed: int, skip_bad: bool, validate: bool = True
+):
     """(train source, list of validation batches) for ``data`` = None (simulator) or a
-    KITTI-style folder with ``train`` and ``val`` splits."""
+    KITTI-style folder with ``train`` and ``val`` splits (``validate`` False: no ``val``
+    needed, the list is empty; a sweep does not validate)."""
     t = config.train
+    val = []
     if data is None:
         key = jax.random.key(seed)
         train = SimSource(config, jax.random.fold_in(key, KEY_TRAIN_DATA))
-        val_source = SimSource(config, jax.random.fold_in(key, KEY_VAL_DATA), "val")
-        val = [val_source(k) for k in range(t.eval_batches)]
+        if validate:
+            val_source = SimSource(config, jax.random.fold_in(key, KEY_VAL_DATA), "val")
+            val = [val_source(k) for k in range(t.eval_batches)]
     else:
         from indoorbev_jax.data.dataset import KittiDataset
 
         train = KittiSource(data, "train", config, seed, skip_bad)
-        val_ds = KittiDataset(data, "val", config)
-        if len(val_ds) == 0:  # every evaluation would be NaN, and best/ chosen on NaN
-            raise kitti.DatasetError(f"{Path(data) / 'val.txt'}: lists no frames to validate on")
-        val = list(val_ds.batches(t.batch_size, drop_remainder=False))[: t.eval_batches]
+        if validate:
+            val_ds = KittiDataset(data, "val", config)
+            if len(val_ds) == 0:  # every evaluation would be NaN, and best/ chosen on NaN
+                raise kitti.DatasetError(
+                    f"{Path(data) / 'val.txt'}: lists no frames to validate on"
+                )
+            val = _val_batches(val_ds, t.batch_size, t.eval_batches, skip_bad)
     if config.data.mask_targets == "box":  # training targets only; validation stays true shape
         boxed = jax.jit(box_targets, static_argnums=1)
         return (lambda step, shaped=train: boxed(shaped(step), config.grid)), val

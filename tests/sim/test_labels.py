@@ -315,3 +315,21 @@ def test_rectangles_match_the_shared_box_rasteriser():
         np.zeros(n, bool), grid.cell_size,
     )  # fmt: skip
     np.testing.assert_array_equal(ours, box_masks(jnp.asarray(boxes), grid))
+
+
+def test_reference_frame_labels_objects_on_a_workspace_not_centred_on_the_sensor():
+    """The oracle's "box centre in the workspace" must read x_range/y_range as given, not
+    as symmetric about the sensor (x_range (-8, 2): an object at x = -3 is inside)."""
+    cfg = dataclasses.replace(CFG, grid=dataclasses.replace(CFG.grid, x_range=(-8.0, 2.0)))
+    batch, info = jax.tree.map(np.asarray, generate.jitted_generate(cfg, "train", 8)(KEY))
+    dirs = np.asarray(generate.make_pattern(cfg.sim).frame(int(info.frame_index[0])).directions)
+    far_back = 0
+    for b in range(8):
+        ref = generate.reference_frame(
+            cfg, generate.scene_numpy(info.scene, b), float(info.time[b]),
+            dirs.astype(np.float64), np.random.default_rng(0),
+        )  # fmt: skip
+        slots = info.slot[b][batch.targets.valid[b]]
+        np.testing.assert_array_equal(slots, np.flatnonzero(ref["labelled"]))
+        far_back += int((batch.targets.pos[b][batch.targets.valid[b], 0] < -2).sum())
+    assert far_back, "no labelled object behind x = -2: the case is not exercised"
