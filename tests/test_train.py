@@ -151,7 +151,13 @@ def test_run_with_ema_checkpoints_and_exports_the_average(tmp_path):
     jax.tree.map(np.testing.assert_array_equal, params, shifted)
 
 
-def test_corrupt_latest_checkpoint_falls_back(tmp_path, caplog):
+@pytest.mark.parametrize("damage", ["garbage", "empty"])
+def test_corrupt_latest_checkpoint_falls_back_and_is_written_anew(tmp_path, caplog, damage):
+    """A corrupt latest checkpoint, or an empty step folder (a partial save: it used to make
+    the intact older ones unreadable too), falls back to the previous one; a run that fell
+    back past a bad step saves that step anew."""
+    import shutil
+
     state = T.TrainState(
         step=jnp.int32(0), params={"w": jnp.arange(4.0)}, opt_state=(), skipped=jnp.int32(0)
     )
@@ -159,15 +165,25 @@ def test_corrupt_latest_checkpoint_falls_back(tmp_path, caplog):
     for step in (1, 2):
         ckpt.save(state.replace(step=jnp.int32(step), params={"w": jnp.arange(4.0) * step}))
     ckpt.close()
-    for f in (tmp_path / "checkpoints" / "2").rglob("*"):
-        if f.is_file():
-            f.write_bytes(b"garbage")
+    bad = tmp_path / "checkpoints" / "2"
+    if damage == "empty":
+        shutil.rmtree(bad)
+        bad.mkdir()
+    else:
+        for f in bad.rglob("*"):
+            if f.is_file():
+                f.write_bytes(b"garbage")
     ckpt = T.Checkpoints(tmp_path, keep=3)
     with caplog.at_level("WARNING"):
         restored = ckpt.restore(state)
-    assert int(restored.step) == 1
+    assert restored is not None and int(restored.step) == 1
     np.testing.assert_array_equal(restored.params["w"], np.arange(4.0))
     assert "checkpoint 2 is unreadable" in caplog.text
+    ckpt.save(state.replace(step=jnp.int32(2), params={"w": jnp.arange(4.0) * 7}))
+    ckpt.close()
+    again = T.Checkpoints(tmp_path, keep=3).restore(state)
+    assert int(again.step) == 2
+    np.testing.assert_array_equal(again.params["w"], np.arange(4.0) * 7)
 
 
 SHARDED = textwrap.dedent(
@@ -725,35 +741,3 @@ def test_train_step_lowers_to_plain_xla_ops(batch, step_fn):
     state = T.init_state(CFG, jax.random.key(0))
     lowered = step_fn.lower(state, batch, jax.random.key(1), T.Hyper.from_config(CFG))
     assert "custom_call" not in lowered.as_text()
-
-
-@pytest.mark.parametrize("damage", ["empty", "garbage"])
-def test_partial_latest_checkpoint_falls_back_and_is_written_anew(tmp_path, caplog, damage):
-    """An empty step folder (a partial save) must not make the intact older checkpoints
-    unreadable too, and a run that fell back past a bad step saves that step anew."""
-    import shutil
-
-    state = T.TrainState(
-        step=jnp.int32(0), params={"w": jnp.arange(4.0)}, opt_state=(), skipped=jnp.int32(0)
-    )
-    ckpt = T.Checkpoints(tmp_path, keep=3)
-    for step in (1, 2):
-        ckpt.save(state.replace(step=jnp.int32(step), params={"w": jnp.arange(4.0) * step}))
-    ckpt.close()
-    bad = tmp_path / "checkpoints" / "2"
-    if damage == "empty":
-        shutil.rmtree(bad)
-        bad.mkdir()
-    else:
-        for f in bad.rglob("*"):
-            if f.is_file():
-                f.write_bytes(b"garbage")
-    ckpt = T.Checkpoints(tmp_path, keep=3)
-    with caplog.at_level("WARNING"):
-        restored = ckpt.restore(state)
-    assert restored is not None and int(restored.step) == 1
-    ckpt.save(state.replace(step=jnp.int32(2), params={"w": jnp.arange(4.0) * 7}))
-    ckpt.close()
-    again = T.Checkpoints(tmp_path, keep=3).restore(state)
-    assert int(again.step) == 2
-    np.testing.assert_array_equal(again.params["w"], np.arange(4.0) * 7)
