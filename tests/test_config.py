@@ -11,8 +11,10 @@ from indoorbev_jax.config import (
     BackboneConfig,
     Config,
     ConfigError,
+    DataConfig,
     GridConfig,
     HeadConfig,
+    SimConfig,
     TrainConfig,
 )
 
@@ -39,6 +41,25 @@ def test_preset_grids():
         (lambda: TrainConfig(warmup_steps=10, total_steps=5), "train.warmup_steps"),
         (lambda: TrainConfig(ema_decay=1.0), "train.ema_decay"),
         (lambda: AugmentConfig(intensity_drop_prob=1.5), "augment.intensity_drop_prob"),
+        # Non-finite and non-positive values that used to pass or crash unnamed.
+        (lambda: GridConfig(cell_size=math.inf), "grid.cell_size"),
+        (lambda: GridConfig(x_range=(-5.0, math.inf)), "grid.x_range"),
+        (lambda: GridConfig(x_range=(-1e308, 1e308)), "grid.x_range"),
+        (lambda: BackboneConfig(embed_dims=(-64, 128, 256, 512)), r"backbone.embed_dims\[0\]"),
+        (lambda: BackboneConfig(embed_dims=(64, 0, 256, 512)), r"backbone.embed_dims\[1\]"),
+        (lambda: BackboneConfig(depths=(1, -1, 1, 1)), r"backbone.depths\[1\]"),
+        (
+            lambda: BackboneConfig(
+                embed_dims=(), depths=(), num_heads=(), strides=(), shifted=(), out_indices=()
+            ),
+            "backbone.embed_dims",
+        ),
+        (lambda: AugmentConfig(rotation=math.nan), "augment.rotation"),
+        (lambda: AugmentConfig(jitter_std=math.inf), "augment.jitter_std"),
+        (lambda: AugmentConfig(scale_range=(1.0, math.inf)), "augment.scale_range"),
+        (lambda: SimConfig(min_range=math.nan), "sim.min_range"),
+        (lambda: SimConfig(clearance=math.nan), "sim.clearance"),
+        (lambda: DataConfig(class_map=(("Desk", "Table"), ("Desk", "Chair"))), "data.class_map"),
         (
             lambda: dataclasses.replace(Config.tiny(), head=HeadConfig(num_queries=4)),
             "data.max_objects",

@@ -62,13 +62,19 @@ def _fail(field: str, message: str) -> None:
 
 
 def _check_range(field: str, value: tuple[float, float]) -> None:
-    if len(value) != 2 or not value[0] < value[1]:
-        _fail(field, f"expected (min, max) with min < max, got {value!r}")
+    if len(value) != 2 or not value[0] < value[1] or not all(map(math.isfinite, value)):
+        _fail(field, f"expected finite (min, max) with min < max, got {value!r}")
 
 
 def _check_positive(field: str, value: float) -> None:
     if not value > 0:
         _fail(field, f"must be > 0, got {value!r}")
+
+
+def _check_non_negative(field: str, value: float) -> None:
+    """NaN and infinity fail too (``value < 0`` lets NaN through)."""
+    if not (value >= 0 and math.isfinite(value)):
+        _fail(field, f"must be finite and >= 0, got {value!r}")
 
 
 def _check_len(field: str, value: tuple, n: int) -> None:
@@ -91,11 +97,16 @@ class GridConfig:
 
     def __post_init__(self):
         _check_positive("grid.cell_size", self.cell_size)
+        if not math.isfinite(self.cell_size):
+            _fail("grid.cell_size", f"must be finite, got {self.cell_size!r}")
         for name in ("x_range", "y_range", "z_range"):
             _check_range(f"grid.{name}", getattr(self, name))
         for name in ("x_range", "y_range"):
             lo, hi = getattr(self, name)
             cells = (hi - lo) / self.cell_size
+            if not 1 <= cells < 2**31:
+                _fail(f"grid.{name}", f"extent {hi - lo} m holds {cells} cells of "
+                      f"cell_size {self.cell_size} m, expected at least 1")  # fmt: skip
             if abs(cells - round(cells)) > 1e-6:
                 _fail(
                     f"grid.{name}",
@@ -168,6 +179,10 @@ class DataConfig:
         ):
             _fail("data.class_map", f"expected (name, class) pairs or a dict, got {pairs!r}")
         object.__setattr__(self, "class_map", tuple(tuple(p) for p in pairs))
+        sources = [src for src, _ in self.class_map]
+        for src in sources:
+            if sources.count(src) > 1:  # dict() would silently keep the last target
+                _fail("data.class_map", f"'{src}' is mapped more than once: {self.class_map!r}")
         for src, dst in self.class_map:
             if dst not in self.class_names:
                 _fail("data.class_map", f"'{src}' maps to unknown class '{dst}'")
@@ -221,8 +236,14 @@ class BackboneConfig:
         n = len(self.embed_dims)
         if self.chunk_windows < 0:
             _fail("backbone.chunk_windows", f"must be >= 0 (0: off), got {self.chunk_windows}")
+        if not n:
+            _fail("backbone.embed_dims", "expected at least one stage, got ()")
         for name in ("depths", "num_heads", "strides", "shifted"):
             _check_len(f"backbone.{name}", getattr(self, name), n)
+        for k, (dim, depth) in enumerate(zip(self.embed_dims, self.depths, strict=True)):
+            _check_positive(f"backbone.embed_dims[{k}]", dim)
+            if depth < 0:
+                _fail(f"backbone.depths[{k}]", f"must be >= 0, got {depth}")
         for k, (dim, heads) in enumerate(zip(self.embed_dims, self.num_heads, strict=True)):
             if heads <= 0 or dim % heads:
                 _fail(f"backbone.num_heads[{k}]", f"{heads} heads do not divide width {dim}")
@@ -428,10 +449,9 @@ class AugmentConfig:
             "box_yaw_std",
             "box_scale_std",
         ):
-            if getattr(self, name) < 0:
-                _fail(f"augment.{name}", f"must be >= 0, got {getattr(self, name)!r}")
+            _check_non_negative(f"augment.{name}", getattr(self, name))
         lo, hi = self.scale_range
-        if not 0 < lo <= hi:
+        if not 0 < lo <= hi < math.inf:
             _fail("augment.scale_range", f"expected 0 < min <= max, got {self.scale_range!r}")
         if self.gt_sampling < 0 or self.gt_sampling_attempts < 1:
             _fail("augment.gt_sampling", "needs gt_sampling >= 0 and gt_sampling_attempts >= 1")
@@ -526,8 +546,7 @@ class SimConfig:
         for name in ("frame_dt", "max_range"):
             _check_positive(f"sim.{name}", getattr(self, name))
         for name in ("min_points", "max_scene_objects", "range_noise", "min_range", "clearance"):
-            if getattr(self, name) < 0:
-                _fail(f"sim.{name}", f"must be >= 0, got {getattr(self, name)!r}")
+            _check_non_negative(f"sim.{name}", getattr(self, name))
         if not 0.0 <= self.dropout < 1.0:
             _fail("sim.dropout", f"must lie in [0, 1), got {self.dropout!r}")
         if self.min_range >= self.max_range:

@@ -222,3 +222,15 @@ def test_predicted_sizes_may_be_negative(tmp_path):
     (tmp_path / "p.txt").write_text(GOOD.replace("1.0 1.0 1.0", "-0.5 1.0 1.0") + " 0.9\n")
     labels = kitti.read_labels(tmp_path / "p.txt", DATA)
     np.testing.assert_allclose(labels.dims, [[1.0, 1.0, -0.5]])
+
+
+def test_float64_points_with_nan_rows_are_refused(tmp_path):
+    """NaN points are legal, in a float64 file too: one must not hide the float64 (read as
+    float32, the file gave twice the points, hundreds of garbage ones in the workspace)."""
+    rng = np.random.default_rng(0)
+    cloud = np.c_[rng.uniform(-4, 4, (1000, 3)), rng.uniform(0, 1, 1000)]
+    organised = np.where((np.arange(1000) % 100 == 0)[:, None], np.nan, cloud)
+    for name, points in (("one_nan", np.r_[cloud, [[np.nan] * 3 + [0.0]]]), ("rows", organised)):
+        points.tofile(tmp_path / f"{name}.bin")  # float64
+        with pytest.raises(kitti.DatasetError, match=rf"{name}\.bin: looks like float64"):
+            kitti.read_points(tmp_path / f"{name}.bin")

@@ -150,8 +150,12 @@ def _looks_like_float64(words: np.ndarray) -> bool:
     if words.size == 0 or words.size % 8:
         return False
     doubles = words.view(np.float64).reshape(-1, 4)
-    if not np.isfinite(doubles).all() or np.abs(doubles[:, :3]).max() > 1e4:
+    # NaN/Inf points are legal data (invalid, not an error), in float64 files too: rows
+    # holding them cannot tell, so the test reads the finite rows (8 float32 words each).
+    finite = np.isfinite(doubles).all(axis=1)
+    if not finite.any() or np.abs(doubles[finite, :3]).max() > 1e4:
         return False
+    words = words.reshape(-1, 8)[finite].reshape(-1)
     xyz = np.abs(words.reshape(-1, 4)[:, :3])
     xyz = xyz[xyz != 0]
     # The low halves of doubles read as float32 are huge, tiny or not finite; or all zero
