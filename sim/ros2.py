@@ -169,19 +169,22 @@ def publish(
     lifetime_ns = round(2e9 * period)
     sent = late = 0
     first = last = 0.0  # monotonic times of the first and last frame
-    recorder = None
+    recorder = producer = None
     context, node = runtime.start_node("indoorbev_sim", ros_args)
     try:  # from here on, Ctrl-C still finishes the recording and stops the node
         reliable = runtime.qos(True, 5)
         pub_points = node.create_publisher(runtime.msg_class(POINTCLOUD2), topic, reliable)
         pub_objects = node.create_publisher(runtime.msg_class(MARKER_ARRAY), objects_topic,
                                             reliable)  # fmt: skip
+        # Fully qualified names, after the node's namespace and remappings: the bag's.
+        points_name, objects_name = pub_points.topic_name, pub_objects.topic_name
         if record:
             from indoorbev_jax.ros2.record import BagRecorder
 
-            recorder = BagRecorder(record, {topic: POINTCLOUD2, objects_topic: MARKER_ARRAY},
+            recorder = BagRecorder(record, {points_name: POINTCLOUD2, objects_name: MARKER_ARRAY},
                                    ts, storage)  # fmt: skip
-        threading.Thread(target=produce, name="indoorbev-sim", daemon=True).start()
+        producer = threading.Thread(target=produce, name="indoorbev-sim", daemon=True)
+        producer.start()
         if wait_subscribers:
             deadline = time.monotonic() + wait_timeout
             while pub_points.get_subscription_count() < wait_subscribers:
@@ -192,7 +195,8 @@ def publish(
                     )
                 time.sleep(0.05)
             time.sleep(0.5)
-        print(f"indoorbev-sim ros2 publish: {topic}, {objects_topic} at {rate} Hz", flush=True)
+        print(f"indoorbev-sim ros2 publish: {points_name}, {objects_name} at {rate} Hz",
+              flush=True)  # fmt: skip
         next_time = 0.0
         while context.ok() and (frames == 0 or sent < frames):
             try:
@@ -218,8 +222,8 @@ def publish(
             pub_points.publish(bytes(cloud))
             pub_objects.publish(bytes(truth))
             if recorder is not None:
-                recorder.write(topic, stamp, bytes(cloud))
-                recorder.write(objects_topic, stamp, bytes(truth))
+                recorder.write(points_name, stamp, bytes(cloud))
+                recorder.write(objects_name, stamp, bytes(truth))
             sent += 1
             next_time += period
         time.sleep(0.5)  # let reliable deliveries of the last frames complete
@@ -231,6 +235,11 @@ def publish(
         )
         with runtime.signals_held(held):
             stop.set()
+            if producer is not None:
+                # Let the scene in progress finish: an interpreter that exits while this
+                # thread is inside jitted code aborts (SIGABRT, "FATAL: exception not
+                # rethrown"), so a Ctrl-C that came mid-scene would end in status 134.
+                producer.join()
             if recorder is not None:
                 print(f"indoorbev-sim ros2 publish: recorded into {recorder.close()}",
                       flush=True)  # fmt: skip

@@ -22,7 +22,14 @@ from indoorbev_jax.ros2 import RosUnavailable, require_rclpy
 from indoorbev_jax.ros2 import messages as M
 from indoorbev_jax.ros2.detect import OUTPUTS, Detector, speed_hint
 from indoorbev_jax.ros2.record import BagRecorder, read_bag
-from indoorbev_jax.rosbag import MARKER_ARRAY, POINTCLOUD2, cloud_msg, header, typestore
+from indoorbev_jax.rosbag import (
+    MARKER_ARRAY,
+    POINTCLOUD2,
+    cloud_msg,
+    header,
+    pointcloud2_to_points,
+    typestore,
+)
 from indoorbev_jax.train import init_state
 
 # Thresholds at 0 so that an untrained model still yields objects to publish.
@@ -184,6 +191,32 @@ def test_detector_bad_input(detector):
         detector.skip_nonfinite = False
     assert "3 of 303 points are not finite (those points are skipped)" in result.warning
     assert result.outputs == detector.process(_raw_cloud(clean)).outputs
+
+
+def test_detector_reads_a_huge_row_step_without_allocating_it(detector):
+    # A 1-row cloud may declare any row_step (the last row needs no padding): a 300-byte
+    # message with row_step 2**32 - 1 must not make the reader allocate 4 GiB (a MemoryError
+    # on a robot computer with little memory, which would stop the node's worker).
+    import tracemalloc
+
+    points = _scan(10)
+    msg = TS.deserialize_cdr(_raw_cloud(points), POINTCLOUD2)
+    msg.row_step = 2**32 - 1
+    raw = bytes(TS.serialize_cdr(msg, POINTCLOUD2))
+    tracemalloc.start()
+    try:
+        result = detector.process(raw)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 64 * 2**20, f"reading the cloud allocated {peak / 2**20:.0f} MiB"
+    assert result.outputs == detector.process(_raw_cloud(points)).outputs
+    # Padded rows of an organized cloud are still skipped as laid out.
+    rows = np.zeros((2, 5 * 16 + 8), np.uint8)
+    rows[:, : 5 * 16] = points.astype("<f4").view(np.uint8).reshape(2, 5 * 16)
+    msg.height, msg.width, msg.row_step = 2, 5, 5 * 16 + 8
+    msg.data = rows.reshape(-1)[:-8]  # the last row's padding may be left out
+    np.testing.assert_array_equal(pointcloud2_to_points(msg), points)
 
 
 def test_recorder_round_trip_and_missing_rclpy(tmp_path, monkeypatch):
@@ -543,3 +576,84 @@ def test_levelled_clouds_publish_in_the_level_frame(model, capsys):
     assert len(labels) > 0
     np.testing.assert_array_equal(got.pos, labels.pos)  # z moved back by the height offset
     np.testing.assert_array_equal(got.classes, labels.classes)
+
+
+def test_recording_names_the_topics_as_resolved(model, tmp_path, monkeypatch):
+    # A namespaced node (multi-robot setups) with relative topic names: the bag must name
+    # the topics the clouds really came from (/robot1/points), as `ros2 bag record` does,
+    # not the unresolved "points", so that `indoorbev predict --topic /robot1/points` and
+    # `ros2 bag play` find them.
+    pytest.importorskip("rclpy", reason="the ros extra is not installed (pip install -e .[ros])")
+    from rclpy.signals import SignalHandlerOptions
+
+    from indoorbev_jax.ros2 import runtime
+    from indoorbev_jax.ros2.detect import run_detect_node
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.setenv("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    domain = os.environ.get("ROS_DOMAIN_ID") or str(1 + os.getpid() % 100)
+    monkeypatch.setenv("ROS_DOMAIN_ID", domain)
+    import rclpy
+
+    context = rclpy.Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("indoorbev_test_pub", context=context)
+    pub = node.create_publisher(runtime.msg_class(POINTCLOUD2), "/robot1/points",
+                                runtime.qos(True, 5))  # fmt: skip
+    stop = threading.Event()
+
+    def publish():
+        k = 0
+        while not stop.wait(0.3):
+            pub.publish(_raw_cloud(_scan(), stamp=(k + 1) * 10**9))
+            k += 1
+
+    thread = threading.Thread(target=publish, daemon=True)
+    thread.start()
+    sigterm = signal.getsignal(signal.SIGTERM)
+    bag = tmp_path / "bag"
+    try:
+        summary = run_detect_node(str(model[0]), topic="points", out_ns="indoorbev",
+                                  reliable=True, record=str(bag), max_frames=2,
+                                  ros_args=["-r", "__ns:=/robot1"])  # fmt: skip
+    finally:
+        signal.signal(signal.SIGTERM, sigterm)
+        stop.set()
+        thread.join()
+        node.destroy_node()
+        context.try_shutdown()
+    assert summary["processed"] == 2
+    assert set(read_bag(bag)) == {"/robot1/points"} | {f"/robot1/indoorbev/{k}" for k in OUTPUTS}
+
+
+def test_sim_ctrl_c_while_a_scene_is_generated_exits_cleanly(tmp_path, monkeypatch):
+    # Ctrl-C while the generator thread is inside jitted code (here: compiling the first
+    # scene, no XLA cache): the bag is finished and the process exits 0, not with an abort
+    # (status 134, "FATAL: exception not rethrown") at interpreter shutdown.
+    pytest.importorskip("rclpy", reason="the ros extra is not installed (pip install -e .[ros])")
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    domain = os.environ.get("ROS_DOMAIN_ID") or str(1 + os.getpid() % 100)
+    monkeypatch.setenv("ROS_DOMAIN_ID", domain)
+    bag = tmp_path / "sim_bag"
+    sim = subprocess.Popen(
+        [sys.executable, "-c", "import signal, sys; "
+         "signal.signal(signal.SIGINT, signal.default_int_handler); "  # even if inherited ignored
+         "sys.argv[0] = 'indoorbev-sim'; from indoorbev_sim.cli import entry; entry()",
+         "ros2", "publish", "--preset", "small", "--frames", "0", "--topic", "/sigint_test",
+         "--record", str(bag), "--cache", ""],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        out = _Lines(sim)
+        out.wait_for(" at 10.0 Hz", timeout=120)  # printed as the generator starts compiling
+        time.sleep(2.5)  # well into the compile (it ends during shutdown: the abort)
+        sim.send_signal(signal.SIGINT)
+        assert sim.wait(timeout=120) == 0, out.all
+    finally:
+        if sim.poll() is None:
+            sim.kill()
+            sim.wait()
+    from rosbags.rosbag2 import Reader
+
+    with Reader(bag) as reader:  # a finished bag (maybe without a frame yet)
+        assert {c.topic for c in reader.connections} == {"/sigint_test", "/lidar/objects"}

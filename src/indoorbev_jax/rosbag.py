@@ -213,10 +213,13 @@ def pointcloud2_to_points(msg, source: str = "PointCloud2") -> np.ndarray:
         )
     if n == 0:
         return np.zeros((0, 4), np.float32)
-    # Rows as [height, row_step], padding cut off, then one point per line.
-    padded = np.zeros(height * int(msg.row_step), np.uint8)
-    padded[:need] = raw[:need]
-    rows = padded.reshape(height, int(msg.row_step))[:, :row_bytes].reshape(n, step)
+    # Rows viewed in place (row_step apart, padding skipped; the checks above keep the view
+    # inside ``raw``), then one point per line: memory for the points only, never
+    # height x row_step, which a 1-row cloud may declare as up to 4 GiB.
+    raw = np.ascontiguousarray(raw[:need])
+    rows = np.lib.stride_tricks.as_strided(
+        raw, shape=(height, row_bytes), strides=(int(msg.row_step), 1), writeable=False
+    ).reshape(n, step)
 
     def column(name):
         f = fields[name]

@@ -378,9 +378,9 @@ def run_detect_node(
                 if k == "detections":
                     published = time.time_ns()
             if recorder is not None:
-                recorder.write(topic, result.stamp or received, bytes(raw))
+                recorder.write(bag_names["input"], result.stamp or received, bytes(raw))
                 for k, message in result.outputs.items():
-                    recorder.write(out_topics[k], result.stamp, message)
+                    recorder.write(bag_names[k], result.stamp, message)
             with lock:
                 stats.processed += 1
                 if result.warning is not None:
@@ -413,19 +413,24 @@ def run_detect_node(
             k: node.create_publisher(runtime.msg_class(OUTPUTS[k]), t, runtime.qos(True, 5))
             for k, t in out_topics.items()
         }
+        subscription = node.create_subscription(
+            runtime.msg_class(POINTCLOUD2), topic, on_cloud, runtime.qos(reliable, 1), raw=True
+        )
+        # The bag names the topics as they are on the wire: fully qualified, after the
+        # node's namespace and any remapping (what `ros2 bag record` would write).
+        bag_names = {"input": subscription.topic_name}
+        bag_names |= {k: publishers[k].topic_name for k in OUTPUTS}
         if record:
             from indoorbev_jax.ros2.record import BagRecorder
 
-            bag_topics = {topic: POINTCLOUD2} | {out_topics[k]: OUTPUTS[k] for k in OUTPUTS}
+            bag_topics = {bag_names["input"]: POINTCLOUD2}
+            bag_topics |= {bag_names[k]: OUTPUTS[k] for k in OUTPUTS}
             recorder = BagRecorder(record, bag_topics, detector.ts, storage)
-        node.create_subscription(
-            runtime.msg_class(POINTCLOUD2), topic, on_cloud, runtime.qos(reliable, 1), raw=True
-        )
         worker = threading.Thread(target=work, name="indoorbev-detect", daemon=True)
         worker.start()
         print(
             f"indoorbev ros2 detect: ready (warm-up {compile_s:.1f} s); "
-            f"{topic} -> {', '.join(out_topics.values())}",
+            f"{bag_names['input']} -> {', '.join(bag_names[k] for k in OUTPUTS)}",
             flush=True,
         )
         runtime.spin(node, context, stop)
