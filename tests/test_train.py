@@ -340,6 +340,38 @@ def test_a_malformed_validation_frame_is_named_and_skipped_when_asked(data, tmp_
     assert none == [] and source is not None
 
 
+def test_a_malformed_training_frame_is_named_and_skipped_when_asked(data, tmp_path, caplog):
+    """KittiSource: without --skip-bad-frames a truncated .bin stops at its step, naming
+    it; with it the frame is reported, left out of every batch, and a split with no
+    readable frame left is an error."""
+    import shutil
+
+    own = tmp_path / "own"
+    shutil.copytree(data, own)
+    ids = kitti.read_split(own, "train")
+    bad = own / "velodyne" / f"{ids[0]}.bin"
+    bad.write_bytes(bad.read_bytes()[:100])
+    strict = T.KittiSource(own, "train", CFG, seed=0)
+    per_epoch = len(ids) // CFG.train.batch_size
+    with pytest.raises(kitti.DatasetError, match=rf"{ids[0]}\.bin"):
+        for step in range(per_epoch):
+            strict(step)
+    lenient = T.KittiSource(own, "train", CFG, seed=0, skip_bad=True)
+    with caplog.at_level("WARNING"):
+        batches = [lenient(step) for step in range(per_epoch)]
+    assert f"skipping malformed frame {ids[0]}" in caplog.text
+    good = KittiDataset(own, "train", CFG)
+    firsts = {good.load(k)[0].points.tobytes() for k in range(1, len(ids))}
+    for b in batches:
+        for points in np.asarray(b.points):
+            assert points.tobytes() in firsts  # never the bad frame, every one readable
+    for frame_id in ids[1:]:
+        path = own / "velodyne" / f"{frame_id}.bin"
+        path.write_bytes(path.read_bytes()[:100])
+    with pytest.raises(kitti.DatasetError, match="no readable frame left"):
+        T.KittiSource(own, "train", CFG, seed=0, skip_bad=True)(0)
+
+
 class _Stop(Exception):
     """Raised by the first train step of ``quick_start``: the start's checks have run."""
 

@@ -240,11 +240,11 @@ class BackboneConfig:
             _fail("backbone.embed_dims", "expected at least one stage, got ()")
         for name in ("depths", "num_heads", "strides", "shifted"):
             _check_len(f"backbone.{name}", getattr(self, name), n)
-        for k, (dim, depth) in enumerate(zip(self.embed_dims, self.depths, strict=True)):
+        stages = zip(self.embed_dims, self.depths, self.num_heads, strict=True)
+        for k, (dim, depth, heads) in enumerate(stages):
             _check_positive(f"backbone.embed_dims[{k}]", dim)
             if depth < 0:
                 _fail(f"backbone.depths[{k}]", f"must be >= 0, got {depth}")
-        for k, (dim, heads) in enumerate(zip(self.embed_dims, self.num_heads, strict=True)):
             if heads <= 0 or dim % heads:
                 _fail(f"backbone.num_heads[{k}]", f"{heads} heads do not divide width {dim}")
         for k, s in enumerate(self.strides):

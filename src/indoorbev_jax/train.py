@@ -421,7 +421,6 @@ class KittiSource:
 
     def __call__(self, step: int) -> Batch:
         from indoorbev_jax.data.dataset import collate
-        from indoorbev_jax.data.kitti import DatasetError
 
         per_epoch = len(self.dataset) // self.batch_size
         epoch, k = divmod(step, per_epoch)
@@ -432,16 +431,26 @@ class KittiSource:
             pos += 1
             if index in self.bad:
                 continue
-            try:
-                items.append(self.dataset.load(index)[0])
-            except (DatasetError, OSError) as e:
-                if not self.skip_bad:
-                    raise
-                log.warning("skipping malformed frame %s: %s", self.dataset.ids[index], e)
-                self.bad.add(index)
-                if len(self.bad) == len(self.dataset):
-                    raise DatasetError(f"{self.dataset.root}: no readable frame left") from e
+            frame = load_or_skip(self.dataset, index, self.skip_bad, "frame")
+            if frame is not None:
+                items.append(frame)
+                continue
+            self.bad.add(index)
+            if len(self.bad) == len(self.dataset):
+                raise kitti.DatasetError(f"{self.dataset.root}: no readable frame left")
         return collate(items)
+
+
+def load_or_skip(dataset, index: int, skip_bad: bool, kind: str) -> Batch | None:
+    """Frame ``index`` of a ``KittiDataset``; a malformed one raises its error naming the
+    file, or with ``skip_bad`` is reported by name (as a ``kind``) and gives None."""
+    try:
+        return dataset.load(index)[0]
+    except (kitti.DatasetError, OSError) as e:
+        if not skip_bad:
+            raise
+        log.warning("skipping malformed %s %s: %s", kind, dataset.ids[index], e)
+        return None
 
 
 def prefetch(source: Callable[[int], Batch], start: int, stop: int, size: int = 2) -> Iterator:
@@ -660,12 +669,8 @@ def _val_batches(val_ds, batch_size: int, batches: int, skip_bad: bool) -> list[
     for index in range(len(val_ds)):
         if len(items) == batches * batch_size:
             break
-        try:
-            items.append(val_ds.load(index)[0])
-        except (kitti.DatasetError, OSError) as e:
-            if not skip_bad:
-                raise
-            log.warning("skipping malformed validation frame %s: %s", val_ds.ids[index], e)
+        frame = load_or_skip(val_ds, index, skip_bad, "validation frame")
+        items += [] if frame is None else [frame]
     if not items:
         raise kitti.DatasetError(f"{val_ds.root / 'val.txt'}: no readable frame to validate on")
     return [collate(items[k : k + batch_size]) for k in range(0, len(items), batch_size)]
