@@ -53,7 +53,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from indoorbev_jax.cli import add_views_argument, rpy_argument
+from indoorbev_jax.cli import add_views_argument, positive_int, rpy_argument
 from indoorbev_jax.config import ConfigError, InferenceConfig
 from indoorbev_jax.evaluate import report
 from indoorbev_jax.geometry import in_workspace
@@ -138,8 +138,9 @@ def evaluate_sim_sweep(
 
     Args:
       inferences: ``InferenceConfig`` per evaluator (``config.inference`` is not used); they
-        must share ``views`` and ``view_iou``, and the first one's ``mask_threshold`` is the
-        one that fuses the views (``inference.apply_views``).
+        must share ``views`` and ``view_iou``. The model runs once per batch; with several
+        views its outputs are fused once per distinct ``mask_threshold`` (fusion binarises
+        the masks at it), so each row sees the views fused as it would alone.
       intensity_factor: the simulated intensity is multiplied by this before the model sees
         it (1: as simulated), to measure what other intensity units do to the model.
       z_offset: metres added to every point's z before the model sees it (0: as simulated),
@@ -153,7 +154,7 @@ def evaluate_sim_sweep(
     from indoorbev_sim.generate import jitted_generate
     from tqdm import tqdm
 
-    from indoorbev_jax.inference import apply_views, panoptic_inference
+    from indoorbev_jax.inference import forward_views, fuse_views, panoptic_inference
     from indoorbev_jax.models import IndoorBEV
 
     if frames % batch:
@@ -169,8 +170,12 @@ def evaluate_sim_sweep(
     @jax.jit
     def predict(params, points, valid):
         points, valid = model_input(points, valid, config.grid, intensity_factor, z_offset)
-        predictions = apply_views(model, params, points, valid, inferences[0])
-        return tuple(panoptic_inference(predictions, inference) for inference in inferences)
+        views, view_iou = inferences[0].views, inferences[0].view_iou
+        out = forward_views(model, params, points, valid, views)
+        fused = {}  # mask_threshold -> predictions
+        for m in {i.mask_threshold for i in inferences}:
+            fused[m] = out if views == ("identity",) else fuse_views(out, m, view_iou)
+        return tuple(panoptic_inference(fused[i.mask_threshold], i) for i in inferences)
 
     names = config.data.class_names
     evaluators = [Evaluator(inference, class_names=names) for inference in inferences]
@@ -212,8 +217,8 @@ def add_frame_set_arguments(p: argparse.ArgumentParser) -> None:
     ``--batch``, ``--seed`` (shared with ``pose_errors.py``, so both see the same frames)."""
     p.add_argument("--model", required=True, help="run directory or exported model file")
     p.add_argument("--split", default="test", choices=("test", "val"))
-    p.add_argument("--frames", type=int, default=512)
-    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--frames", type=positive_int, default=512, help="a multiple of --batch")
+    p.add_argument("--batch", type=positive_int, default=8)
     seeds = f"{TEST_SEED} for test, {VAL_SEED} for val"
     p.add_argument("--seed", type=int, default=None, help=f"root seed (default: {seeds})")
 
@@ -283,6 +288,8 @@ def main(argv=None) -> None:
     )
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
+    if args.frames % args.batch:
+        p.error(f"--frames {args.frames} must be a multiple of --batch {args.batch}")
     if args.seed is None:
         args.seed = default_seed(args.split)
     try:

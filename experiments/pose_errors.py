@@ -228,8 +228,8 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     if not 0.5 <= args.match_iou < 1.0:
         p.error(f"--match-iou must lie in [0.5, 1) for unique pairs, got {args.match_iou}")
-    if args.frames < 1 or args.batch < 1 or args.frames % args.batch:
-        p.error(f"--frames {args.frames} must be a positive multiple of --batch {args.batch}")
+    if args.frames % args.batch:
+        p.error(f"--frames {args.frames} must be a multiple of --batch {args.batch}")
     try:
         config, params = load_model(args.model)
         config = with_thresholds(config, views=args.views)

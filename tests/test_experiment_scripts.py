@@ -37,6 +37,32 @@ def test_eval_sim_rejects_a_frame_count_the_batch_does_not_divide():
         eval_sim.evaluate_sim(Config.tiny(), None, "test", 10, 8, 0, progress=False)
 
 
+def test_eval_sim_sweep_fuses_the_views_at_each_rows_mask_threshold():
+    """With test-time views, fusion binarises the masks at ``mask_threshold``: every row of
+    a mask-threshold sweep must be the evaluation at its own threshold (each row used to be
+    fused at the first row's)."""
+    import dataclasses
+
+    from indoorbev_jax.evaluate import to_json
+    from indoorbev_jax.predict import load_model
+
+    eval_sim = _script("eval_sim")
+    # The shipped model: an untrained one finds nothing at either threshold.
+    config, params = load_model(Path(__file__).parents[1] / "models" / "indoorbev_small.msgpack")
+    views = ("identity", "mirror_x")
+    settings = [dataclasses.replace(config.inference, mask_threshold=m, views=views)
+                for m in (0.3, 0.7)]  # fmt: skip
+    sweep = eval_sim.evaluate_sim_sweep(config, params, "test", 2, 2, 5, settings, False)
+    results = [to_json(e.compute()) for e in sweep]
+    assert results[0] != results[1]
+    for inference, result in zip(settings, results, strict=True):
+        alone = dataclasses.replace(config, inference=inference)
+        assert (
+            to_json(eval_sim.evaluate_sim(alone, params, "test", 2, 2, 5, False).compute())
+            == result
+        )
+
+
 def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, capsys):
     import numpy as np
 
@@ -360,7 +386,10 @@ def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
         ("bench_ros2", ["--latency-frames", "1"], "--latency-frames gives 1 clouds"),
         ("bench_ros2", ["--seconds", "0.1"], "--seconds x --rate gives 1 clouds"),
         ("pose_errors", ["--model", "m", "--match-iou", "0.4"], "--match-iou must lie in [0.5, 1)"),
-        ("pose_errors", ["--model", "m", "--frames", "10"], "--frames 10 must be a positive multi"),
+        ("pose_errors", ["--model", "m", "--frames", "10"], "--frames 10 must be a multiple of"),
+        ("eval_sim", ["--model", "m", "--frames", "10"], "--frames 10 must be a multiple of"),
+        ("eval_sim", ["--model", "m", "--batch", "0"], "argument --batch: must be > 0, got 0"),
+        ("eval_sim", ["--model", "m", "--frames", "-8"], "argument --frames: must be > 0, got -8"),
         ("pose_errors", ["--model", "none.msgpack"], "none.msgpack: no such model file or run"),
     ],
 )

@@ -344,12 +344,29 @@ def apply_views(
       returns a pair); with several views, one layer of V * Q queries.
     """
     config = config or InferenceConfig()
-    views = config.views
+    if config.views == ("identity",):
+        return model.apply(params, points, valid, **apply_kwargs)
+    out = forward_views(model, params, points, valid, config.views, **apply_kwargs)
+    stacked, extra = out if isinstance(out, tuple) else (out, None)
+    fused = fuse_views(stacked, config.mask_threshold, config.view_iou)
+    return fused if extra is None else (fused, extra)
+
+
+def forward_views(
+    model, params, points: jax.Array, valid: jax.Array, views: tuple[str, ...], **apply_kwargs
+) -> Predictions:
+    """The first half of ``apply_views``: one batched forward of the V views, mapped back
+    to the lidar frame but not fused, so that one forward can be fused at several mask
+    thresholds (``fuse_views``); with ``("identity",)``, the plain forward.
+
+    Returns:
+      ``Predictions`` with a leading view axis [V, L, B, ...] (none for the identity), with
+      ``model.apply``'s extra outputs as in ``apply_views``.
+    """
     check_views(views, model.config.grid)
     if views == ("identity",):
         return model.apply(params, points, valid, **apply_kwargs)
     out = model.apply(params, *view_batch(points, valid, views), **apply_kwargs)
     out, extra = out if isinstance(out, tuple) else (out, None)
     stacked = unview_batch(out, views)
-    fused = fuse_views(stacked, config.mask_threshold, config.view_iou)
-    return fused if extra is None else (fused, extra)
+    return stacked if extra is None else (stacked, extra)
