@@ -226,6 +226,32 @@ def test_infinite_mask_logits_give_finite_costs_and_gradients(batch):
     assert all(np.isfinite(np.asarray(g)).all() for g in jax.tree.leaves(grads))
 
 
+def test_fractional_focal_gamma_matches_reference_with_finite_gradients(batch):
+    """A non-integer gamma is the focal loss of its definition, and its gradient stays
+    finite where the sigmoid underflows (|logit| >= 88 gave NaN: every step skipped)."""
+    preds, targets = batch
+    config = dataclasses.replace(CFG, focal_gamma=0.5)
+    total, _, _ = _loss(preds, targets, config=config)
+    np.testing.assert_allclose(total, _ref_loss(preds, targets, WEIGHTS, config)[0], rtol=1e-4)
+    masks = preds.masks.copy()
+    masks[:, :, :, 0, :4] = [90.0, -90.0, 200.0, -200.0]
+    _, _, grads = _loss(dataclasses.replace(preds, masks=masks), targets, config=config)
+    assert all(np.isfinite(np.asarray(g)).all() for g in jax.tree.leaves(grads))
+
+
+def test_numpy_targets_closed_over_by_jit_with_sampled_points(batch):
+    """Targets held as numpy arrays by a jitted function (not passed in) are indexed at
+    traced sampled cells: a TracerArrayConversionError before."""
+    preds, targets = batch
+    key = jax.random.key(3)
+    closed = jax.jit(lambda p, k: set_loss(p, targets, WEIGHTS, SAMPLED, key=k)[0])
+    np.testing.assert_allclose(
+        closed(preds, key), _loss(preds, targets, config=SAMPLED, key=key)[0], rtol=1e-6
+    )
+    cost = jax.jit(lambda p, k: cost_matrix(p, targets, SAMPLED, k))(preds, key)
+    np.testing.assert_allclose(cost, _cost(preds, targets, config=SAMPLED, key=key), rtol=1e-6)
+
+
 def test_invariant_to_permuting_queries_and_targets(batch):
     preds, targets = batch
     rng = np.random.default_rng(3)

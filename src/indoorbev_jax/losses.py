@@ -59,18 +59,28 @@ def _random_cells(key: jax.Array, shape: tuple[int, ...], num_cells: int) -> jax
     return (bits % jnp.uint32(num_cells)).astype(jnp.int32)
 
 
-def _pow(x: jax.Array, gamma: float) -> jax.Array:
-    # Integer powers go through lax.integer_pow, whose gradient stays finite at x = 0
-    # (jnp.power(0, 0.0) has a NaN gradient); gamma = 2 is the common case.
-    return x ** int(gamma) if float(gamma).is_integer() else jnp.power(x, gamma)
+def _sigmoid_pow(x: jax.Array, gamma: float) -> jax.Array:
+    """``sigmoid(x) ** gamma`` with a finite gradient everywhere."""
+    # Integer powers go through lax.integer_pow, whose gradient stays finite where sigmoid
+    # underflows to 0; gamma = 2 is the common case. Fractional ones as exp(gamma log s):
+    # jnp.power's gradient is infinite at 0 and times sigmoid's 0 gave NaN once |x| >= 88.
+    if float(gamma).is_integer():
+        return jax.nn.sigmoid(x) ** int(gamma)
+    return jnp.exp(gamma * jax.nn.log_sigmoid(x))
 
 
 def _focal_terms(x: jax.Array, alpha: float, gamma: float) -> tuple[jax.Array, jax.Array]:
     """Sigmoid focal loss of logits ``x`` against target 1 and against target 0 (same shape)."""
     # softplus(-x) = -log sigmoid(x) and sigmoid(-x) = 1 - sigmoid(x), both stable at |x| >> 1.
-    pos = alpha * _pow(jax.nn.sigmoid(-x), gamma) * jax.nn.softplus(-x)
-    neg = (1.0 - alpha) * _pow(jax.nn.sigmoid(x), gamma) * jax.nn.softplus(x)
+    pos = alpha * _sigmoid_pow(-x, gamma) * jax.nn.softplus(-x)
+    neg = (1.0 - alpha) * _sigmoid_pow(x, gamma) * jax.nn.softplus(x)
     return pos, neg
+
+
+def _device_targets(targets) -> Targets:
+    """``as_targets`` with jax arrays: numpy masks indexed by traced sampled cells (targets
+    closed over by a jitted function) raised a TracerArrayConversionError."""
+    return jax.tree.map(jnp.asarray, as_targets(targets))
 
 
 def _check_inputs(predictions: Predictions, targets: Targets) -> None:
@@ -199,7 +209,7 @@ def cost_matrix(
     Returns:
       float32 [L, B, Q, M].
     """
-    predictions, targets = as_predictions(predictions), as_targets(targets)
+    predictions, targets = as_predictions(predictions), _device_targets(targets)
     _check_inputs(predictions, targets)
     _check_key(config, key)
     mask_logits, mask_targets = _cost_mask_points(predictions, targets, config, key)
@@ -310,7 +320,7 @@ def set_loss(
         config = weights if config is DEFAULT_CONFIG else config
         weights = weights.weights()
     predictions = as_predictions(predictions)
-    targets = as_targets(targets)
+    targets = _device_targets(targets)
     _check_inputs(predictions, targets)
     _check_weights(weights)
     _check_key(config, key)

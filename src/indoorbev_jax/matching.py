@@ -30,9 +30,10 @@ COST_CAP = 1e5
 # "dummy" columns. A padded target costs the same constant on every query (so it cannot
 # change which queries the valid targets get) and less on its own dummy column, which it
 # therefore takes at once; valid targets pay _DUMMY_COST > COST_CAP on dummies and never
-# take one. Without the dummies a padded target competes with every other for the queries
-# and, all its costs tied, walks long augmenting paths: 16 frames of 30 x 30 with 5-15
-# valid targets solve 3.4-4.2x faster with them, full frames 1.4-3x slower (wider matrix;
+# take one while a query is free (more valid targets than queries: ``_overflow_cost``).
+# Without the dummies a padded target competes with every other for the queries and, all
+# its costs tied, walks long augmenting paths: 16 frames of 30 x 30 with 5-15 valid
+# targets solve 3.4-4.2x faster with them, full frames 1.4-3x slower (wider matrix;
 # docs/BENCHMARKS.md).
 _PAD_QUERY_COST = 2.0
 _DUMMY_COST = 3.0 * COST_CAP
@@ -67,11 +68,31 @@ def clean_cost(cost: jax.Array, valid: jax.Array | None = None) -> jax.Array:
     return jnp.nan_to_num(cost, nan=COST_CAP, posinf=COST_CAP, neginf=-COST_CAP)
 
 
+def _overflow_cost(cost: jax.Array, valid: jax.Array) -> jax.Array:
+    """What a valid target pays on a dummy column, for one frame: cost [Q, M] (clean).
+
+    With at most Q valid targets no valid target ends on a dummy, and the fixed
+    ``_DUMMY_COST`` keeps the solver's path (and every training run) as it was. With more,
+    n - Q of them must, and the solver's potentials climb to this cost: at 3e5 the float32
+    spacing (0.03) swamped O(1) cost differences (an audit: 89 of 200 frames of 8 x 12
+    above scipy's optimum). Then the least cost that still makes every augmenting path pay
+    is used: raising the matched count by one changes the real costs by at most
+    k (hi - lo) + hi for k < n matched targets. A frame holding capped entries keeps
+    ``_DUMMY_COST``, which the bound then exceeds.
+    """
+    q = cost.shape[0]
+    n = jnp.sum(valid)
+    hi = jnp.max(jnp.where(valid[None], cost, -jnp.inf), initial=0.0)
+    lo = jnp.min(jnp.where(valid[None], cost, jnp.inf), initial=0.0)
+    tight = (n + 1) * (hi - lo) + jnp.abs(hi) + jnp.abs(lo) + 1.0
+    return jnp.where(n > q, jnp.minimum(tight, _DUMMY_COST), _DUMMY_COST)
+
+
 def _match_one(cost: jax.Array, valid: jax.Array) -> jax.Array:
     """Query index of each target of one frame: cost [Q, M] (clean), valid [M] -> int32 [M]."""
     q, m = cost.shape
     real = jnp.where(valid[:, None], cost.T, _PAD_QUERY_COST)  # [M, Q]
-    dummy = jnp.where(valid[:, None], _DUMMY_COST, 1.0 - jnp.eye(m))  # [M, M]
+    dummy = jnp.where(valid[:, None], _overflow_cost(cost, valid), 1.0 - jnp.eye(m))  # [M, M]
     rows, cols = optax.assignment.hungarian_algorithm(jnp.concatenate([real, dummy], axis=1))
     # Every row (target) is assigned; the solver lists them in its own order.
     col = jnp.zeros(m, jnp.int32).at[rows].set(cols.astype(jnp.int32))  # [M], dummies >= Q
