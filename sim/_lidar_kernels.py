@@ -232,7 +232,7 @@ def ray_geom(gtype: int, size: wp.vec3, p: wp.vec3, mat: wp.mat33, vec: wp.vec3)
 @wp.func
 def _better(sol: float, g: int, best: float, best_g: int) -> bool:
     """MuJoCo keeps the first geom (lowest id) among equal distances."""
-    if sol < 0.0 or sol > best:
+    if not (sol >= 0.0) or sol > best:  # NaN is no hit, as mj_ray's x >= 0
         return False
     if best_g < 0 or sol < best:
         return True
@@ -531,7 +531,7 @@ def _cast_ray(
         if _better(sol, g, best, best_g):
             best = sol
             best_g = g
-    if cand_drop[s, k] * inv_len <= best:
+    if cand_drop[s, k] < BIG and cand_drop[s, k] * inv_len <= best:
         # The cell overflowed its list: finish with every geom (rare, still exact).
         for g in range(geom_type.shape[1]):
             if geom_enabled[s, g] == 0:

@@ -57,6 +57,8 @@ class SceneGeometry:
       front: int32 [B, G], 1 for planes (hit from their +z side only).
       types: static (not a pytree leaf) tuple of the G ``mjtGeom`` ids, or None; the
         "jax" caster casts one type at a time when it is known.
+      batched: static; False when made from one unbatched scene (B = 1), whose single-ray-
+        set casts then drop the scene axis, as ``cast_rays`` promises.
     """
 
     geom_type: jax.Array
@@ -68,6 +70,7 @@ class SceneGeometry:
     enabled: jax.Array
     front: jax.Array
     types: tuple[int, ...] | None = struct.field(pytree_node=False, default=None)
+    batched: bool = struct.field(pytree_node=False, default=True)
 
 
 def _static_np(x, name: str) -> np.ndarray:
@@ -125,7 +128,8 @@ def scene_geometry(
         )
 
     # Static filters, as mj_ray's ray_eliminate.
-    bodyid = _static_np(model.geom_bodyid, "geom_bodyid").reshape(-1, ngeom)[0]
+    # reshape(-1)[:ngeom]: the first scene's row, also for ngeom = 0 (reshape(-1, 0) fails).
+    bodyid = _static_np(model.geom_bodyid, "geom_bodyid").reshape(-1)[:ngeom]
     keep = supported & (bodyid != bodyexclude)
     if not flg_static:
         weld = _static_np(model.body_weldid, "body_weldid").reshape(-1, model.nbody)[0]
@@ -134,7 +138,7 @@ def scene_geometry(
         flags = np.asarray(geomgroup).reshape(-1)
         if flags.shape != (mujoco.mjNGROUP,):
             raise ValueError(f"geomgroup must hold {mujoco.mjNGROUP} flags, got {flags.shape}")
-        group = _static_np(model.geom_group, "geom_group").reshape(-1, ngeom)[0]
+        group = _static_np(model.geom_group, "geom_group").reshape(-1)[:ngeom]
         keep &= flags[np.clip(group, 0, mujoco.mjNGROUP - 1)] != 0
 
     pos = jnp.asarray(data.geom_xpos, jnp.float32)
@@ -145,7 +149,8 @@ def scene_geometry(
 
     def per_scene(x, tail):  # broadcast model fields to [B, G, *tail]
         x = jnp.asarray(x)
-        return jnp.broadcast_to(x.reshape(-1, ngeom, *tail), (nscene, ngeom, *tail))
+        x = x.reshape(-1, ngeom, *tail) if ngeom else jnp.zeros((1, 0, *tail), x.dtype)
+        return jnp.broadcast_to(x, (nscene, ngeom, *tail))
 
     size = per_scene(model.geom_size, (3,)).astype(jnp.float32)
     # Invisible geoms (alpha 0 of the geom or of its material) are skipped by mj_ray.
@@ -175,6 +180,7 @@ def scene_geometry(
         enabled=enabled.astype(jnp.int32),
         front=front,
         types=tuple(int(t) for t in geom_type),
+        batched=batched,
     )
 
 
@@ -598,6 +604,10 @@ def cast_geometry(
     single = origins.ndim == 1 and directions.ndim == 2
     method = _resolve_method(method)
     nray = directions.shape[-2]
+    if nray == 0 or geo.pos.shape[1] == 0:  # nothing to cast, or nothing to hit
+        dist = jnp.full((nscene, nray), -1.0, jnp.float32)
+        gid = jnp.full((nscene, nray), -1, jnp.int32)
+        return (dist[0], gid[0]) if single and not geo.batched else (dist, gid)
     dirs = jnp.broadcast_to(directions.reshape(-1, nray, 3), (nscene, nray, 3))
     # mj_ray refuses a direction shorter than mjMINVAL; here such a ray (or a non-finite
     # one) is a miss, and the kernels see a harmless unit vector in its place.
@@ -605,6 +615,9 @@ def cast_geometry(
     castable = jnp.isfinite(length) & (length >= rc.MINVAL)
     dirs = jnp.where(castable[..., None], dirs, jnp.array([1.0, 0.0, 0.0], jnp.float32))
     origin = jnp.broadcast_to(origins.reshape(-1, 3), (nscene, 3))
+    # A non-finite origin misses everything, as in mj_ray (the kernels gave NaN hits).
+    castable &= jnp.isfinite(origin).all(-1)[:, None]
+    origin = jnp.where(jnp.isfinite(origin), origin, 0.0)
     mr = jnp.broadcast_to(jnp.asarray(max_range, jnp.float32).reshape(-1), (nscene,))
     if method == "jax":
         dist, gid = _cast_jax(geo, dirs, origin, mr)
@@ -616,7 +629,7 @@ def cast_geometry(
         dist, gid = _batched_caster(method, cells, int(capacity), threads)(geo, dirs, origin, mr)
     dist = jnp.where(castable, dist, -1.0)
     gid = jnp.where(castable, gid, -1)
-    if single and nscene == 1:
+    if single and not geo.batched:
         return dist[0], gid[0]
     return dist, gid
 
@@ -646,7 +659,7 @@ def cast_rays(
     Args:
       model: ``mjx.Model`` (one scene; or geom_size etc. batched over B scenes).
       data: ``mjx.Data`` of one scene (``geom_xpos`` [G, 3]) or B scenes ([B, G, 3]).
-      origins: float [3] or [B, 3], world frame.
+      origins: float [3] or [B, 3], world frame (a non-finite one: every ray misses).
       directions: float [R, 3] or [B, R, 3], unit vectors, world frame (a direction of
         length < mjMINVAL, or not finite, is a miss; ``mj_ray`` stops the process on the
         first and gives no reliable answer for the second). With one
@@ -665,7 +678,8 @@ def cast_rays(
         this process may use. Results do not depend on it; on CUDA it is ignored.
 
     Returns:
-      distance: float32 [R] or [B, R], along the ray (in units of |direction|), -1 on a miss.
+      distance: float32 [R] or [B, R] ([R] only for origins [3], directions [R, 3] and an
+        unbatched ``data``), along the ray (in units of |direction|), -1 on a miss.
       geom_id: int32 [R] or [B, R], the hit geom, -1 on a miss.
     """
     method = _resolve_method(method)  # before any work on the model

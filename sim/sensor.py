@@ -128,7 +128,8 @@ def scan(
         cpu_threads).
 
     Returns:
-      ``Scan`` with a leading B axis iff ``data`` is batched.
+      ``Scan`` with a leading B axis iff ``data`` or ``pose`` is batched (B poses in one
+      unbatched scene scan that scene from each).
     """
     geo_kw = {
         k: cast_kwargs.pop(k)
@@ -141,8 +142,17 @@ def scan(
     directions = jnp.asarray(directions, jnp.float32)
     if directions.ndim != 2 or directions.shape[-1] != 3:
         raise ValueError(f"directions must be [R, 3] (sensor frame), got {directions.shape}")
-    pos = jnp.broadcast_to(jnp.asarray(pose.pos, jnp.float32).reshape(-1, 3), (nscene, 3))
-    rot = jnp.broadcast_to(jnp.asarray(pose.rot, jnp.float32).reshape(-1, 3, 3), (nscene, 3, 3))
+    pos = jnp.asarray(pose.pos, jnp.float32).reshape(-1, 3)
+    rot = jnp.asarray(pose.rot, jnp.float32).reshape(-1, 3, 3)
+    nposes = max(pos.shape[0], rot.shape[0])
+    if nscene == 1 and nposes > 1:  # B poses in one scene: the scene is shared
+        nscene, batched = nposes, True
+        geo = jax.tree.map(lambda x: jnp.broadcast_to(x, (nscene,) + x.shape[1:]), geo)
+    for name, x in (("pos", pos), ("rot", rot)):
+        if x.shape[0] not in (1, nscene):
+            raise ValueError(f"pose.{name} holds {x.shape[0]} poses for {nscene} scenes")
+    pos = jnp.broadcast_to(pos, (nscene, 3))
+    rot = jnp.broadcast_to(rot, (nscene, 3, 3))
     world_dirs = jnp.einsum("bij,rj->bri", rot, directions)  # [B, R, 3]
     dist, gid = lidar.cast_geometry(geo, pos, world_dirs, config.max_range, **cast_kwargs)
     dist = dist.reshape(nscene, -1)  # [B, R]

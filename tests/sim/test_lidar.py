@@ -438,6 +438,55 @@ def test_degenerate_directions_miss_and_one_scene_takes_ray_sets(method):
         lidar.cast_rays(mx, two, origins[:2], sets, MAX_RANGE, method=method)
 
 
+@pytest.mark.parametrize("method", ["binned", "brute", "jax"])
+def test_non_finite_origins_and_geom_poses_miss_like_mj_ray(method):
+    """A NaN origin misses every ray and a geom with a NaN pose (here the infinite floor) is
+    never hit, as in mj_ray; the Warp casters reported NaN distances on geom 0, and a NaN
+    plane hid the real geoms behind it."""
+    m = mujoco.MjModel.from_xml_string(random_scene_xml(6, n=8))
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    dirs = unit_rays(np.random.default_rng(9), 256)
+    origin = np.array([0.3, -0.2, 0.4], np.float32)
+    nan_origin = np.array([np.nan, 0.0, 0.0], np.float32)
+    dist, gid = _cast[method](mjx.put_model(m), mjx.put_data(m, d), nan_origin, dirs)
+    np.testing.assert_array_equal(np.asarray(dist), -1.0)
+    np.testing.assert_array_equal(np.asarray(gid), -1)
+    d.geom_xpos[0] = np.nan  # the floor plane
+    dist, gid = _cast[method](mjx.put_model(m), mjx.put_data(m, d), origin, dirs)
+    ref_d, ref_g = mj_ray_reference(m, d, origin.astype(np.float64), dirs)
+    assert (ref_g == -1).sum() > 50  # rays that only the floor would stop
+    np.testing.assert_allclose(np.asarray(dist), ref_d, atol=1e-4)
+    np.testing.assert_array_equal(np.asarray(gid), ref_g)
+
+
+@pytest.mark.parametrize("method", ["binned", "jax"])
+def test_a_batch_of_one_keeps_its_axis_and_empty_casts_are_empty(method):
+    """Data batched over B = 1 scene gives [1, R] like any B (it gave [R]); zero rays give
+    empty arrays and a model without geoms all misses (both crashed in a reshape)."""
+    m = mujoco.MjModel.from_xml_string(random_scene_xml(7, n=6))
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    mx, dx = mjx.put_model(m), mjx.put_data(m, d)
+    dirs = unit_rays(np.random.default_rng(3), 32)
+    origin = np.zeros(3, np.float32)
+    one = jax.tree.map(lambda x: x[None], dx)
+    dist, gid = _cast[method](mx, one, origin, dirs)
+    assert dist.shape == gid.shape == (1, 32)
+    ref_d, ref_g = mj_ray_reference(m, d, origin.astype(np.float64), dirs)
+    np.testing.assert_allclose(np.asarray(dist[0]), ref_d, atol=1e-4)
+    np.testing.assert_array_equal(np.asarray(gid[0]), ref_g)
+    dist, gid = _cast[method](mx, dx, origin, np.zeros((0, 3), np.float32))
+    assert dist.shape == gid.shape == (0,) and gid.dtype == jnp.int32
+    empty = mujoco.MjModel.from_xml_string("<mujoco><worldbody/></mujoco>")
+    e = mujoco.MjData(empty)
+    mujoco.mj_forward(empty, e)
+    dist, gid = _cast[method](mjx.put_model(empty), mjx.put_data(empty, e), origin, dirs)
+    assert dist.shape == (32,)
+    np.testing.assert_array_equal(np.asarray(dist), -1.0)
+    np.testing.assert_array_equal(np.asarray(gid), -1)
+
+
 README_SNIPPET = """
 import os
 

@@ -97,7 +97,7 @@ def test_intensity_from_reflectivity_and_incidence(scene):
 
 
 def test_batched_scenes_and_poses(scene):
-    """B scenes with B poses in one call equal B single calls."""
+    """B scenes with B poses in one call equal B single calls, and B poses in one scene."""
     m, d, mx, dx = scene
     dxb = jax.tree.map(lambda x: jnp.stack([x, x]), dx)
     rots = Rotation.from_euler("z", [[0.0], [90.0]], degrees=True).as_matrix().astype(np.float32)
@@ -111,6 +111,10 @@ def test_batched_scenes_and_poses(scene):
         s1 = _scan(mx, dx, pb, dirs, jax.random.key(0), cfg)
         np.testing.assert_array_equal(np.asarray(sb.valid[b]), np.asarray(s1.valid))
         np.testing.assert_allclose(np.asarray(sb.points[b]), np.asarray(s1.points), atol=1e-5)
+    # B poses in one unbatched scene: that scene scanned from each (a broadcast error before).
+    sp = _scan(mx, dx, pose, dirs, jax.random.key(0), cfg)
+    np.testing.assert_array_equal(np.asarray(sp.valid), np.asarray(sb.valid))
+    np.testing.assert_allclose(np.asarray(sp.points), np.asarray(sb.points), atol=1e-6)
 
 
 def test_bad_config_names_the_field():
