@@ -38,6 +38,7 @@ def test_preset_grids():
         (lambda: BackboneConfig(num_heads=(2, 3, 8, 8)), r"backbone.num_heads\[1\]"),
         (lambda: BackboneConfig(depths=(1, 1)), "backbone.depths"),
         (lambda: HeadConfig(num_heads=5), "head.num_heads"),
+        (lambda: HeadConfig(hidden_dim=15, num_heads=3), "head.hidden_dim"),
         (lambda: TrainConfig(warmup_steps=10, total_steps=5), "train.warmup_steps"),
         (lambda: TrainConfig(ema_decay=1.0), "train.ema_decay"),
         (lambda: AugmentConfig(intensity_drop_prob=1.5), "augment.intensity_drop_prob"),

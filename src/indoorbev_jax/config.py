@@ -3,7 +3,7 @@
 Presets:
   * ``Config.paper()``: the paper's network (DESIGN sections 5-8), 0.02 m cells, 500 x 500.
   * ``Config.small()``: trainable on a 2-core CPU, 0.1 m cells, 100 x 100.
-  * ``Config.tiny()``: for tests, 0.25 m cells, 40 x 40, a few thousand parameters.
+  * ``Config.tiny()``: for tests, 0.25 m cells, 40 x 40, 88,642 parameters.
 
 Change a field with ``dataclasses.replace`` (validation runs again)::
 
@@ -321,6 +321,9 @@ class HeadConfig:
             _fail("head.query_init", f"expected one of {QUERY_INITS}, got {self.query_init!r}")
         for name in ("hidden_dim", "num_queries", "num_layers", "ffn_dim", "memory_stride"):
             _check_positive(f"head.{name}", getattr(self, name))
+        if self.hidden_dim % 2:
+            _fail("head.hidden_dim", f"must be even (y and x halves of the sine code), got "
+                  f"{self.hidden_dim}")  # fmt: skip
         if self.attention_chunk < 0:
             _fail("head.attention_chunk", f"must be >= 0 (0: off), got {self.attention_chunk}")
         if self.num_heads <= 0 or self.hidden_dim % self.num_heads:

@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from indoorbev_jax.config import Config
 from indoorbev_jax.models.encoder import AFPCCN
@@ -112,3 +113,15 @@ def test_a_cloud_of_no_points_is_a_cloud_of_invalid_points():
     none = ENC.apply(params, np.zeros((2, 0, 4), np.float32), np.zeros((2, 0), bool))
     invalid, _ = _apply(params, pts, np.zeros_like(valid))
     np.testing.assert_allclose(np.asarray(none), np.asarray(invalid), rtol=1e-6, atol=1e-6)
+
+
+def test_integer_valid_masks_are_read_as_bool_and_float_ones_are_named():
+    """0/1 integer masks equal the bool mask (a 2 counts as valid: it was bitwise-anded to
+    invalid); a float mask is refused naming ``valid`` (a bare TypeError from ``&``)."""
+    pts, valid = _points(2, 2, 64)
+    params = jax.jit(ENC.init, compiler_options=FAST)(jax.random.key(0), pts, valid)
+    want = np.asarray(_apply(params, pts, valid)[0])
+    for ints in (valid.astype(np.int32), 2 * valid.astype(np.uint8)):
+        np.testing.assert_array_equal(np.asarray(_apply(params, pts, ints)[0]), want)
+    with pytest.raises(ValueError, match="valid must be bool"):
+        ENC.apply(params, pts, valid.astype(np.float32))

@@ -165,3 +165,20 @@ def test_grid_that_is_not_square():
     perm = np.random.default_rng(0).permutation(pts.shape[1])
     again = apply(p, pts[:, perm], valid[:, perm])
     np.testing.assert_allclose(again.masks, out.masks, atol=1e-4)
+
+
+def test_bfloat16_model_computes_its_output_heads_in_float32(params):
+    """With ``train.bfloat16`` the box and class heads still run in float32: positions
+    4-5 m out used to snap to bfloat16's 3 cm lattice (1.5 cells of the paper grid)."""
+    shifted = jax.tree_util.tree_map_with_path(
+        lambda k, a: a + 4.5 if "pos_head" in jax.tree_util.keystr(k) else a, params
+    )
+    bf16 = dataclasses.replace(TINY, train=dataclasses.replace(TINY.train, bfloat16=True))
+    pts, valid = _points(3, 1, 256)
+    out = jax.jit(IndoorBEV(bf16).apply, compiler_options=FAST)(shifted, pts, valid)
+    for field in (out.pos, out.dims, out.yaw, out.logits):
+        x = np.asarray(field)
+        on_lattice = np.asarray(jnp.asarray(x).astype(jnp.bfloat16).astype(jnp.float32)) == x
+        assert x.dtype == np.float32 and on_lattice.mean() < 0.5
+    ref = np.asarray(FORWARD(shifted, pts, valid).pos)
+    np.testing.assert_allclose(np.asarray(out.pos), ref, atol=0.5)  # same model, bf16 trunk

@@ -79,6 +79,9 @@ class AFPCCN(nn.Module):
             raise ValueError(f"points must be [B, N, 4], got shape {points.shape}")
         if valid.shape != points.shape[:2]:
             raise ValueError(f"valid must be [B, N] = {points.shape[:2]}, got {valid.shape}")
+        if not (jnp.issubdtype(valid.dtype, jnp.bool_) or jnp.issubdtype(valid.dtype, jnp.integer)):
+            raise ValueError(f"valid must be bool (or 0/1 integers) [B, N], got {valid.dtype}")
+        valid = valid.astype(bool)
         b, n, _ = points.shape
         h, w = self.grid.shape
         v = self.grid.cell_size

@@ -455,9 +455,7 @@ class SimpleMaskHead(nn.Module):
             t, cells = self._select_queries(f_proj)  # [B, Q, C], [B, Q]
             # Box centres are predicted as offsets from the selected cells.
             anchor_x, anchor_y = xs[cells % w], ys[cells // w]  # [B, Q] each
-            anchor = jnp.stack([anchor_x, anchor_y, jnp.zeros_like(anchor_x)], -1).astype(
-                self.dtype
-            )
+            anchor = jnp.stack([anchor_x, anchor_y, jnp.zeros_like(anchor_x)], -1)  # float32
         else:
             query = self.param("query_embed", nn.initializers.normal(1.0), (cfg.num_queries, c))
             t = jnp.broadcast_to(query.astype(self.dtype), (b, cfg.num_queries, c))
@@ -481,7 +479,10 @@ class SimpleMaskHead(nn.Module):
             pixels = pixels + code_map(*positional_code(h, w, c), self.dtype)  # [H, W, C]
         masks = jnp.einsum("bkc,bcn->bkn", m, pixels.reshape(b, h * w, c).transpose(0, 2, 1))
         masks = masks.reshape(b, n_l, n_q, h, w).transpose(1, 0, 2, 3, 4)  # [L, B, Q, H, W]
-        pos = Dense(3, dtype=self.dtype, name="pos_head")(q)  # [L, B, Q, 3]
+        # The small output heads run in float32 whatever self.dtype: in bfloat16 a position
+        # near 4.5 m would snap to a 3 cm lattice (1.5 cells of the paper grid).
+        qf = q.astype(jnp.float32)
+        pos = Dense(3, dtype=jnp.float32, name="pos_head")(qf)  # [L, B, Q, 3]
         if anchor is not None:
             pos = pos + anchor
         if cfg.mask_prior:
@@ -491,8 +492,9 @@ class SimpleMaskHead(nn.Module):
                 Dense(1, dtype=self.dtype, name="prior_scale",
                       bias_init=nn.initializers.constant(_PRIOR_BIAS))(q)
             )  # fmt: skip  # [L, B, Q, 1]
-            dx = xs.astype(self.dtype) - pos[..., 0:1]  # [L, B, Q, W]
-            dy = ys.astype(self.dtype) - pos[..., 1:2]  # [L, B, Q, H]
+            centre = pos.astype(self.dtype)  # masks stay in self.dtype
+            dx = xs.astype(self.dtype) - centre[..., 0:1]  # [L, B, Q, W]
+            dy = ys.astype(self.dtype) - centre[..., 1:2]  # [L, B, Q, H]
             masks = masks - a[..., None] * (dy[..., :, None] ** 2 + dx[..., None, :] ** 2)
         q_cls = q
         if cfg.mask_pooled_class:
@@ -503,10 +505,12 @@ class SimpleMaskHead(nn.Module):
             pooled = pooled / (weight.sum(-1, keepdims=True) + 1.0)  # [L, B, Q, C]
             q_cls = q + Dense(c, dtype=self.dtype, name="pooled_proj")(pooled)
         out = {
-            "logits": Dense(self.num_classes + 1, dtype=self.dtype, name="class_head")(q_cls),
-            "dims": Dense(3, dtype=self.dtype, name="dims_head")(q),
+            "logits": Dense(self.num_classes + 1, dtype=jnp.float32, name="class_head")(
+                q_cls.astype(jnp.float32)
+            ),
+            "dims": Dense(3, dtype=jnp.float32, name="dims_head")(qf),
             "pos": pos,
-            "yaw": Dense(1, dtype=self.dtype, name="yaw_head")(q),
+            "yaw": Dense(1, dtype=jnp.float32, name="yaw_head")(qf),
             "masks": masks,
         }
         return {k: v.astype(jnp.float32) for k, v in out.items()}
