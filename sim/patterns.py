@@ -118,6 +118,8 @@ class Mid360Pattern:
         """Frame k: directions [R, 3] (R = points_per_second / frame_rate) and firing times."""
         nr = self.num_rays
         per = nr // self.num_emitters
+        if isinstance(k, (int, np.integer)):  # wrap as a traced int32 k does (-1: 2^32 - 1)
+            k = int(k) % 2**32
         k = jnp.asarray(k, jnp.uint32)
         i = jnp.arange(per, dtype=jnp.uint32)  # firing slot within the frame
         e = jnp.arange(self.num_emitters, dtype=jnp.uint32)

@@ -38,6 +38,10 @@ def test_frames_are_pure_functions_of_k():
         np.asarray(MID.frame(12345).directions), np.asarray(a.directions), atol=1e-6
     )
     assert not np.allclose(np.asarray(_mid_frame(12346).directions), np.asarray(a.directions))
+    # A negative Python k wraps as a traced int32 one does (it raised an OverflowError).
+    wrapped = np.asarray(MID.frame(-1).directions)
+    np.testing.assert_array_equal(wrapped, np.asarray(MID.frame(2**32 - 1).directions))
+    np.testing.assert_allclose(wrapped, np.asarray(_mid_frame(jnp.int32(-1)).directions), atol=1e-6)
 
 
 def coverage(frames, n_az=180, n_el=40):
