@@ -298,7 +298,7 @@ def mask_ap(
 
         gt = (np.ones((1, 4, 4), bool), np.array([0]))
         det = (np.ones((1, 4, 4), bool), np.array([0]), np.array([0.9]))
-        mask_ap([gt], [det])["ap"]  # {0.25: 1.0, 0.5: 1.0}
+        mask_ap([gt], [det])["ap"]  # {0.25: 0.9999999999999999, 0.5: 0.9999999999999999}
     """
     frames = _ap_frames(gts, dets, num_classes)
     return _ap_from_frames(frames, iou_thresholds, num_classes, max_dets)
