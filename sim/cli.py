@@ -55,6 +55,8 @@ def _check_show_root(root: Path, ids: list[str] | None) -> None:
         raise ValueError(f"{root}: no such dataset folder")
     if ids is None and not any((root / "label_2").glob("*.txt")):
         raise ValueError(f"{root}: holds no frames (no label_2/*.txt files)")
+    if ids is not None and not ids:
+        raise ValueError("--ids: name at least one frame id (leave --ids out for every frame)")
 
 
 def _use_cache(path: str) -> None:

@@ -61,6 +61,31 @@ def test_write_bag_clears_only_its_own_leftovers(tmp_path):
     with pytest.raises(FileExistsError, match=r"b\.partial: holds files"):
         write_bag(tmp_path / "b", [frame], CFG.data.class_names, "/points", "/objects")
     assert other.read_text() == "mine"
+    # Killed while replacing a finished bag: the old one moved aside, the new one not yet in
+    # place. The rerun completes (it used to find a half-deleted bag and refuse it).
+    (tmp_path / "out_bag.partial").mkdir()
+    bag.rename(tmp_path / "out_bag.partial" / "out_bag.old")
+    assert write_bag(bag, [frame], CFG.data.class_names, "/points", "/objects") == 1
+    assert bag.is_dir() and not (tmp_path / "out_bag.partial").exists()
+    assert write_bag(bag, [frame, frame], CFG.data.class_names, "/points", "/objects") == 2
+
+
+def test_a_failed_bag_write_names_the_bag(tmp_path, monkeypatch):
+    """sqlite3's "database or disk is full" named no file and was no OSError: a traceback."""
+    import sqlite3
+
+    from rosbags.rosbag2 import Writer
+
+    from indoorbev_jax.rosbag import write_bag
+
+    def full(*args, **kwargs):
+        raise sqlite3.OperationalError("database or disk is full")
+
+    monkeypatch.setattr(Writer, "write", full)
+    frame = (10**9, "lidar", np.zeros((3, 4), np.float32), kitti.ObjectLabels.empty())
+    with pytest.raises(OSError, match=r"full_bag: cannot write the bag \(OperationalError"):
+        write_bag(tmp_path / "full_bag", [frame], CFG.data.class_names, "/points", "/objects")
+    assert not (tmp_path / "full_bag").exists()
 
 
 def _cloud(fields, dtype, points, bigendian=False):

@@ -220,6 +220,7 @@ def dataset_check(args: argparse.Namespace) -> int:
         return 1
     if len(ds) == 0:
         problems.append(f"{root}: no frames in split {args.split or 'all'}")
+    warnings.extend(_unpaired_files(Path(root), ds.ids, every_frame=args.split is None))
     class_counts = np.zeros(config.num_classes, np.int64)
     valid_points, raw_points = [], []
     invalid = dropped_points = dropped_objects = 0
@@ -285,6 +286,30 @@ def dataset_check(args: argparse.Namespace) -> int:
         return 1
     print("no problems found" + (f" ({len(warnings)} warnings above)" if warnings else ""))
     return 0
+
+
+def _unpaired_files(root: Path, ids: list[str], every_frame: bool) -> list[str]:
+    """Warnings for clouds without labels (not frames: a lost label file, say) and, where
+    ``mask_2/`` exists, frames without a mask (their footprints fall back to the boxes)."""
+    from indoorbev_jax.data import kitti
+
+    found = []
+    if every_frame:
+        clouds = {p.stem for p in (root / "velodyne").glob("*.bin") if not kitti.is_hidden(p)}
+        orphans = sorted(clouds - set(ids))
+        if orphans:
+            found.append(
+                f"{root / 'velodyne'}: {len(orphans)} cloud(s) have no label_2 file, so are no "
+                f"frame, e.g. {[f'{i}.bin' for i in orphans[:5]]}"
+            )
+    if (root / "mask_2").is_dir():
+        no_mask = [i for i in ids if not kitti.frame_paths(root, i)["mask"].exists()]
+        if no_mask:
+            found.append(
+                f"{root / 'mask_2'}: {len(no_mask)} frame(s) have no mask, so their footprints "
+                f"are the label boxes, e.g. {[f'{i}.png' for i in no_mask[:5]]}"
+            )
+    return found
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -485,13 +485,17 @@ def write_bag(
     folder and renamed into place, so an interrupted write never leaves a bag under the
     final name; an existing ``bag`` is replaced only when ``check_bag_target`` allows it.
     """
-    from rosbags.rosbag2 import Writer
+    import sqlite3
+
+    from rosbags.rosbag2 import Writer, WriterError
 
     ts = typestore()
     bag = Path(bag)
     check_bag_target(bag, (points_topic, objects_topic))
     partial = partial_path(bag)
-    if partial.is_dir() and any(p.name != bag.name for p in partial.iterdir()):
+    replaced = partial / f"{bag.name}.old"  # the bag this write replaces, on its way out
+    ours = {bag.name, replaced.name}
+    if partial.is_dir() and any(p.name not in ours for p in partial.iterdir()):
         raise FileExistsError(
             f"{partial}: holds files that an interrupted write of {bag} does not leave; "
             "move or delete it"
@@ -500,19 +504,24 @@ def write_bag(
     partial.mkdir(parents=True)
     tmp = partial / bag.name
     count = 0
-    with Writer(tmp, version=8) as writer:
-        c_pts = writer.add_connection(points_topic, POINTCLOUD2, typestore=ts)
-        c_obj = writer.add_connection(objects_topic, MARKER_ARRAY, typestore=ts)
-        for log_ns, frame, points, labels, *header_ns in frames:
-            stamp = header_ns[0] if header_ns and header_ns[0] is not None else log_ns
-            cloud = cloud_msg(ts, points, stamp, frame)
-            writer.write(c_pts, log_ns, ts.serialize_cdr(cloud, POINTCLOUD2))
-            markers = markers_msg(ts, labels, class_names, stamp, frame)
-            writer.write(c_obj, log_ns, ts.serialize_cdr(markers, MARKER_ARRAY))
-            count += 1
+    try:
+        with Writer(tmp, version=8) as writer:
+            c_pts = writer.add_connection(points_topic, POINTCLOUD2, typestore=ts)
+            c_obj = writer.add_connection(objects_topic, MARKER_ARRAY, typestore=ts)
+            for log_ns, frame, points, labels, *header_ns in frames:
+                stamp = header_ns[0] if header_ns and header_ns[0] is not None else log_ns
+                cloud = cloud_msg(ts, points, stamp, frame)
+                writer.write(c_pts, log_ns, ts.serialize_cdr(cloud, POINTCLOUD2))
+                markers = markers_msg(ts, labels, class_names, stamp, frame)
+                writer.write(c_obj, log_ns, ts.serialize_cdr(markers, MARKER_ARRAY))
+                count += 1
+    except (sqlite3.Error, WriterError) as e:  # a full disk, say: sqlite3 names no file
+        raise OSError(f"{bag}: cannot write the bag ({type(e).__name__}: {e})") from e
     check_bag_target(bag, (points_topic, objects_topic))  # nothing else appeared meanwhile
+    # Renames only until the new bag is in place: a kill while a large old bag was being
+    # deleted left it half gone under the final name, and every rerun refused it.
     if bag.exists():
-        shutil.rmtree(bag)
+        os.replace(bag, replaced)
     os.replace(tmp, bag)
-    partial.rmdir()
+    shutil.rmtree(partial)
     return count

@@ -124,7 +124,10 @@ def test_more_points_than_max_keeps_an_even_spread(tmp_path):
 def test_split_id_without_files_is_named(tmp_path):
     make_dataset(tmp_path)
     kitti.write_split(tmp_path, "val", ["000000", "000777"])
-    with pytest.raises(kitti.DatasetError, match=r"val\.txt: 1 frame id.*000777"):
+    with pytest.raises(
+        kitti.DatasetError,
+        match=r"val\.txt: 2 file\(s\) of its frames are missing.*velodyne/000777\.bin",
+    ):
         KittiDataset(tmp_path, "val", CFG)
 
 
@@ -159,6 +162,31 @@ def test_dataset_check_cli(tmp_path, capsys):
     assert "000002.txt:1: expected 15 fields" in out
 
 
+def test_dataset_check_names_lost_files(tmp_path, capsys):
+    """A cloud whose label file is lost is no frame, and a frame without a mask where
+    mask_2/ exists falls back to its boxes: both were passed over in silence. A split
+    naming a frame says which of its files is missing."""
+    make_dataset(tmp_path)
+    kitti.write_frame(tmp_path, "000003", np.zeros((4, 4), np.float32),
+                      kitti.ObjectLabels.empty(), CLASS_NAMES)  # fmt: skip
+    (tmp_path / "label_2" / "000003.txt").unlink()
+    assert cli_main(["dataset", "check", str(tmp_path), "--preset", "tiny"]) == 0
+    out = capsys.readouterr().out
+    assert "1 cloud(s) have no label_2 file, so are no frame, e.g. ['000003.bin']" in out
+    assert (
+        "2 frame(s) have no mask, so their footprints are the label boxes, e.g. "
+        "['000000.png', '000002.png']" in out
+    )
+    kitti.write_split(tmp_path, "train", ["000000", "000003"])
+    assert (
+        cli_main(["dataset", "check", str(tmp_path), "--split", "train", "--preset", "tiny"]) == 1
+    )
+    assert (
+        "1 file(s) of its frames are missing, e.g. ['label_2/000003.txt']"
+        in capsys.readouterr().out
+    )
+
+
 def test_dataset_check_warns_of_off_grid_objects_and_empty_clouds(tmp_path, capsys):
     """Legal but suspicious (units, frames): warned about, exit 0; the evaluator would leave
     the off-grid objects out. Ground truth with a score column is a problem."""
@@ -169,11 +197,11 @@ def test_dataset_check_warns_of_off_grid_objects_and_empty_clouds(tmp_path, caps
     argv = ["dataset", "check", str(tmp_path), "--preset", "tiny"]
     assert cli_main(argv) == 0
     out = capsys.readouterr().out
-    assert "warnings: 3; the first 3:" in out
+    assert "warnings: 4; the first 4:" in out  # and three frames without a mask
     assert "000001: an empty cloud" in out
     assert "000003: none of its 50 points is valid" in out
     assert "000003: 2 of 2 objects cover no cell of the grid x [-5.0, 5.0]" in out
-    assert out.rstrip().endswith("no problems found (3 warnings above)")
+    assert out.rstrip().endswith("no problems found (4 warnings above)")
     scored = labels_two_objects()
     scored.scores = np.ones(2)
     kitti.write_labels(tmp_path / "label_2" / "000002.txt", scored, CLASS_NAMES)

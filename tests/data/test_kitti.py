@@ -169,6 +169,52 @@ def test_masks_must_be_png_of_integer_ids(tmp_path):
         kitti.read_mask(tmp_path / "float.png", shape)
 
 
+def test_a_corrupt_mask_png_is_named(tmp_path):
+    """A flipped bit in the IHDR length (PIL: ValueError) or in the image data (PIL reads
+    other ids without a word: it checks no CRC when loading) is a DatasetError naming the
+    file."""
+    shape = Config.tiny().grid.shape
+    ids = np.zeros(shape, np.int64)
+    ids[5:9, 3:30] = 1
+    ids[20:25, 10:12] = 2
+    kitti.write_mask(tmp_path / "m.png", ids)
+    data = bytearray((tmp_path / "m.png").read_bytes())
+    header = bytearray(data)
+    header[11] ^= 0x01  # the IHDR chunk's length field
+    (tmp_path / "ihdr.png").write_bytes(bytes(header))
+    idat = data.index(b"IDAT")
+    silent = 0
+    for bit in range(8 * 24):  # the first bytes of the compressed image data
+        flipped = bytearray(data)
+        flipped[idat + 4 + bit // 8] ^= 1 << (bit % 8)
+        (tmp_path / "idat.png").write_bytes(bytes(flipped))
+        with pytest.raises(kitti.DatasetError, match=r"idat\.png: not a readable PNG"):
+            kitti.read_mask(tmp_path / "idat.png", shape)
+        from PIL import Image
+
+        try:
+            with Image.open(tmp_path / "idat.png") as im:
+                silent += not np.array_equal(np.asarray(im), ids)
+        except (OSError, ValueError):
+            pass
+    assert silent > 0  # PIL alone reads some of them as other ids
+    with pytest.raises(kitti.DatasetError, match=r"ihdr\.png: not a readable PNG"):
+        kitti.read_mask(tmp_path / "ihdr.png", shape)
+
+
+def test_a_failed_write_names_the_file_and_leaves_nothing(tmp_path):
+    """A full disk under ndarray.tofile said only "6464 requested and 1024 written"."""
+
+    def full(path):
+        path.write_bytes(b"partial")
+        raise OSError(28, "No space left on device")
+
+    target = tmp_path / "velodyne" / "000000.bin"
+    with pytest.raises(OSError, match=r"cannot write .*000000\.bin: No space left on device"):
+        kitti.atomic_write(target, full)
+    assert list(target.parent.iterdir()) == []
+
+
 def test_split_files_from_other_editors(tmp_path):
     """A byte-order mark and CRLF (Windows editors) are read; a split that is not UTF-8 or
     is a folder is a DatasetError naming it; hidden files are not frames."""

@@ -340,6 +340,9 @@ def test_show_refuses_a_missing_folder(tmp_path, capsys):
     missing = tmp_path / "no_such_export"
     assert main(["show", str(missing), "--out", str(tmp_path / "pics")]) == 2
     assert f"{missing}: no such dataset folder" in capsys.readouterr().err
+    tmp_path.joinpath("label_2").mkdir()  # "--ids" and no id wrote 0 pictures, status 0
+    assert main(["show", str(tmp_path), "--out", str(tmp_path / "pics"), "--ids"]) == 2
+    assert "--ids: name at least one frame id" in capsys.readouterr().err
     assert not (tmp_path / "pics").exists()
 
 

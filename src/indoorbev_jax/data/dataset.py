@@ -188,13 +188,15 @@ class KittiDataset:
         self.ids = kitti.list_frames(self.root) if split is None else kitti.read_split(root, split)
         paths = {i: kitti.frame_paths(root, i) for i in self.ids}
         missing = [
-            i for i, p in paths.items() if not (p["labels"].exists() and p["points"].exists())
+            str(p[kind].relative_to(self.root))
+            for p in paths.values()
+            for kind in ("points", "labels")
+            if not p[kind].exists()
         ]
         if missing:
             listed_in = self.root / (f"{split}.txt" if split is not None else "label_2")
             raise kitti.DatasetError(
-                f"{listed_in}: {len(missing)} frame id(s) have no velodyne/label_2 files, "
-                f"e.g. {missing[:5]}"
+                f"{listed_in}: {len(missing)} file(s) of its frames are missing, e.g. {missing[:5]}"
             )
 
     def __len__(self) -> int:

@@ -119,6 +119,11 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
         write(Path(tmp))
         os.chmod(tmp, _FILE_MODE)
         os.replace(tmp, path)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        # Name the file and the reason: a full disk under ndarray.tofile said only "6464
+        # requested and 1024 written".
+        raise OSError(e.errno, f"cannot write {path}: {e.strerror or e}") from e
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -174,7 +179,7 @@ def write_points(path: str | os.PathLike, points: np.ndarray) -> None:
     points = np.asarray(points, np.float32)
     if points.ndim != 2 or points.shape[1] != 4:
         raise ValueError(f"points for {path}: expected shape [N, 4], got {points.shape}")
-    atomic_write(Path(path), lambda p: points.tofile(p))
+    atomic_write(Path(path), lambda p: p.write_bytes(points.tobytes()))
 
 
 # Labels ------------------------------------------------------------------------------------
@@ -318,11 +323,16 @@ def read_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     """Reads a 16-bit instance-id PNG as int32 [H, W]; its size must equal ``shape``."""
     path = Path(path)
     try:
+        # verify() checks every chunk's CRC, which loading does not: a flipped bit in the
+        # image data otherwise reads as other ids, silently. It leaves the image unusable.
+        with Image.open(path) as im:
+            im.verify()
         with Image.open(path) as im:
             image_format, mode = im.format, im.mode
             ids = np.asarray(im)
-    except OSError as e:
-        raise DatasetError(f"{path}: not a readable PNG ({e})") from None
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as e:
+        # PIL raises all of these for broken files (a bad IHDR length: ValueError).
+        raise DatasetError(f"{path}: not a readable PNG ({type(e).__name__}: {e})") from None
     # A JPEG's lossy compression changes ids silently, and float images hold no ids.
     if image_format != "PNG" or mode not in _ID_MODES:
         raise DatasetError(
