@@ -10,7 +10,8 @@ as array code, no culling) casts on any JAX backend, and is the default there.
 
 Example:
   >>> m = mujoco.MjModel.from_xml_string(xml)
-  >>> mx, dx = mjx.put_model(m), mjx.kinematics(mx, mjx.put_data(m, mujoco.MjData(m)))
+  >>> mx = mjx.put_model(m)
+  >>> dx = mjx.kinematics(mx, mjx.put_data(m, mujoco.MjData(m)))
   >>> dist, geom = jax.jit(cast_rays)(mx, dx, jnp.zeros(3), dirs, 20.0)  # dirs [R, 3]
 """
 

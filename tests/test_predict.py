@@ -318,6 +318,7 @@ def test_predictor_with_views_maps_features_and_segments_back(model_file, tmp_pa
     mirrored = cloud * np.array([1, -1, 1, 1], np.float32)
     _, _, _, plain, bev = P.Predictor(config, params)(cloud)
     one = P.with_thresholds(config, views=("mirror_y",))
+    assert P.with_thresholds(config, views="mirror_y") == one  # not its letters
     _, _, final, out, bev_m = P.Predictor(one, params)(mirrored)
     np.testing.assert_allclose(bev_m, bev[::-1], atol=1e-5)
     assert (plain.instance_ids > 0).any()

@@ -1,6 +1,8 @@
 """The ``indoorbev`` command line.
 
 indoorbev dataset check ROOT [--split NAME] [--preset small] [--set FIELD=VALUE]
+indoorbev predict MODEL INPUT --out DIR [--lidar-rpy R,P,Y] [--lidar-height H]
+indoorbev eval --gt ROOT --pred DIR [--split NAME] [--json FILE]
 indoorbev ros2 detect --checkpoint MODEL [--topic /livox/lidar] [--record BAG]
 """
 

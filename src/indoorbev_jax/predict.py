@@ -124,11 +124,12 @@ def with_thresholds(
     config: Config,
     score_threshold: float | None = None,
     mask_threshold: float | None = None,
-    views: tuple[str, ...] | None = None,
+    views: tuple[str, ...] | str | None = None,
 ) -> Config:
     """``config`` with the inference settings that are given (not None) replaced: the
-    thresholds and the test-time views (``config.VIEWS``); a bad one raises ``ConfigError``
-    naming the field."""
+    thresholds and the test-time views (``config.VIEWS``; one name alone, "identity", is
+    one view, not its letters); a bad one raises ``ConfigError`` naming the field."""
+    views = (views,) if isinstance(views, str) else views
     chosen = {"score_threshold": score_threshold, "mask_threshold": mask_threshold,
               "views": None if views is None else tuple(views)}  # fmt: skip
     chosen = {k: v for k, v in chosen.items() if v is not None}
