@@ -272,11 +272,17 @@ def test_predicted_sizes_may_be_negative(tmp_path):
 
 def test_float64_points_with_nan_rows_are_refused(tmp_path):
     """NaN points are legal, in a float64 file too: one must not hide the float64 (read as
-    float32, the file gave twice the points, hundreds of garbage ones in the workspace)."""
+    float32, the file gave twice the points, hundreds of garbage ones in the workspace); nor
+    must one point beyond 1e4, or a cloud in millimetres."""
     rng = np.random.default_rng(0)
     cloud = np.c_[rng.uniform(-4, 4, (1000, 3)), rng.uniform(0, 1, 1000)]
     organised = np.where((np.arange(1000) % 100 == 0)[:, None], np.nan, cloud)
-    for name, points in (("one_nan", np.r_[cloud, [[np.nan] * 3 + [0.0]]]), ("rows", organised)):
+    far = np.r_[cloud, [[1e30, 1e30, 1e30, 0.0]]]  # one "no return" written as 1e30
+    millimetres = cloud * [1000, 1000, 1000, 1]  # beyond 1e4 everywhere
+    mostly_nan = np.where((np.arange(1000) % 10 != 0)[:, None], np.nan, cloud)
+    cases = {"one_nan": np.r_[cloud, [[np.nan] * 3 + [0.0]]], "rows": organised, "far": far,
+             "mm": millimetres, "mostly_nan": mostly_nan}  # fmt: skip
+    for name, points in cases.items():
         points.tofile(tmp_path / f"{name}.bin")  # float64
         with pytest.raises(kitti.DatasetError, match=rf"{name}\.bin: looks like float64"):
             kitti.read_points(tmp_path / f"{name}.bin")

@@ -157,10 +157,14 @@ def _looks_like_float64(words: np.ndarray) -> bool:
     doubles = words.view(np.float64).reshape(-1, 4)
     # NaN/Inf points are legal data (invalid, not an error), in float64 files too: rows
     # holding them cannot tell, so the test reads the finite rows (8 float32 words each).
+    # Rows beyond 1e6 (a 1e30 "no return", say) cannot tell either: most rows must be
+    # plausible, not all (one far point, or a cloud in millimetres, hid the float64).
     finite = np.isfinite(doubles).all(axis=1)
-    if not finite.any() or np.abs(doubles[finite, :3]).max() > 1e4:
+    plausible = finite.copy()
+    plausible[finite] = np.abs(doubles[finite, :3]).max(axis=1) <= 1e6
+    if not plausible.any() or plausible.sum() < 0.5 * finite.sum():
         return False
-    words = words.reshape(-1, 8)[finite].reshape(-1)
+    words = words.reshape(-1, 8)[plausible].reshape(-1)
     xyz = np.abs(words.reshape(-1, 4)[:, :3])
     xyz = xyz[xyz != 0]
     # The low halves of doubles read as float32 are huge, tiny or not finite; or all zero
