@@ -53,7 +53,12 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from indoorbev_jax.cli import add_views_argument, positive_int, rpy_argument
+from indoorbev_jax.cli import (
+    add_views_argument,
+    join_negative_values,
+    positive_int,
+    rpy_argument,
+)
 from indoorbev_jax.config import ConfigError, InferenceConfig
 from indoorbev_jax.evaluate import report
 from indoorbev_jax.geometry import in_workspace
@@ -287,7 +292,7 @@ def main(argv=None) -> None:
         "--view-iou", type=float, default=None, help="inference.view_iou (default: the model's)"
     )
     p.add_argument("--no-progress", action="store_true")
-    args = p.parse_args(argv)
+    args = p.parse_args(join_negative_values(argv))
     if args.frames % args.batch:
         p.error(f"--frames {args.frames} must be a multiple of --batch {args.batch}")
     if args.seed is None:

@@ -22,6 +22,7 @@ from pathlib import Path
 from indoorbev_jax.cli import (
     INTERRUPTED,
     exit_with,
+    join_negative_values,
     nonnegative_int,
     positive_float,
     positive_int,
@@ -141,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     pb.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
                     help="the rest goes to rclpy (remappings, log levels)")  # fmt: skip
 
-    args = parser.parse_args(argv)
+    args = parser.parse_args(join_negative_values(argv))
     try:
         if args.command == "show":
             _check_show_root(Path(args.root), args.ids)

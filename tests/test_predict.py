@@ -735,3 +735,52 @@ def test_model_fingerprint_is_the_one_older_versions_gave():
     assert P.model_fingerprint(tiny, params) == old
     tilted = dataclasses.replace(tiny, sim=dataclasses.replace(tiny.sim, sensor_rpy=(0, 5, 0)))
     assert P.model_fingerprint(tilted, params) != old
+
+
+def test_a_resumed_run_reads_its_finished_frames_as_the_first_run_did(
+    model_file, tmp_path, monkeypatch
+):
+    """A scan in Livox units, an empty one, then a dark one (every intensity <= 1, which
+    "auto" reads in the units seen so far). Rerun after a kill that left the last frame
+    undone, the model sees the dark scan as the uninterrupted run did (it saw it in unit
+    intensities, 150x brighter), and the summary still names the empty frame done before."""
+    rng = np.random.default_rng(6)
+    livox, dark = rng.uniform(-3.0, 3.0, (2, 600, 4)).astype(np.float32)
+    livox[:, 3] = rng.integers(0, 256, 600)
+    dark[:, 3] = rng.uniform(0.0, 1.0, 600)
+    for frame_id, cloud in (("000000", livox), ("000001", np.zeros((0, 4))), ("000002", dark)):
+        kitti.write_points(tmp_path / "scans" / "velodyne" / f"{frame_id}.bin", cloud)
+    seen = []
+    infer = P.Predictor.infer
+    monkeypatch.setattr(
+        P.Predictor, "infer", lambda self, p, v: (seen.append(p), infer(self, p, v))[1]
+    )
+
+    def run():
+        seen.clear()
+        return P.predict(model_file, tmp_path / "scans", tmp_path / "o", verbose=False,
+                         pictures=False)  # fmt: skip
+
+    first = run()
+    assert first["empty_frames"] == ["000001"] and len(seen) == 3
+    want = seen[-1].copy()
+    for folder, suffix in (("label_2", "txt"), ("mask_2", "png")):
+        (tmp_path / "o" / folder / f"000002.{suffix}").unlink()
+    again = run()
+    assert again["resumed_frames"] == 2 and len(seen) == 1
+    np.testing.assert_array_equal(seen[0], want)
+    assert again["empty_frames"] == ["000001"]
+
+
+def test_a_negative_roll_is_a_value_not_an_option(model_file, tmp_path, capsys):
+    """argparse reads "-5,10,0" as an unknown option ("expected one argument"): the mount
+    of a lidar leaning right could not be given without "=". Each command joins it."""
+    from indoorbev_jax.cli import join_negative_values
+
+    assert join_negative_values(["--lidar-rpy", "-5,10,0", "-x", "-1"]) == [
+        "--lidar-rpy=-5,10,0", "-x", "-1"]  # fmt: skip
+    kitti.write_points(tmp_path / "scan.bin", _scans(1, seed=3, points=200)[0])
+    argv = ["predict", str(model_file), str(tmp_path / "scan.bin"), "--out", str(tmp_path / "o"),
+            "--no-pictures", "--lidar-rpy", "-5,10,0"]  # fmt: skip
+    assert cli_main(argv) == 0
+    assert "roll -5" in capsys.readouterr().out

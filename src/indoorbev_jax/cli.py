@@ -158,6 +158,20 @@ def add_boxes_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def join_negative_values(argv: list[str] | None, flags=("--lidar-rpy",)) -> list[str]:
+    """``argv`` (None: ``sys.argv[1:]``) with ``FLAG -5,0,0`` written ``FLAG=-5,0,0``:
+    argparse takes a negative number for a value only when it is one number, so a
+    negative roll read as an unknown option ("expected one argument")."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    out: list[str] = []
+    for arg in argv:
+        if out and out[-1] in flags and arg[:1] == "-" and arg[1:2] in "0123456789.":
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
 def rpy_argument(text: str) -> tuple[float, float, float]:
     """argparse type of ``--lidar-rpy``: ``ROLL,PITCH,YAW`` in degrees."""
     from indoorbev_jax.mount import parse_rpy
@@ -463,7 +477,7 @@ def run_predict(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(join_negative_values(argv))
     return args.func(args)
 
 

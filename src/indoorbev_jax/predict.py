@@ -614,6 +614,11 @@ def predict(
             summary["frames"] += 1
             if all(p.exists() for p in wanted):
                 summary["resumed_frames"] += 1
+                # No model call, but the cloud is read as the first run read it: "auto"
+                # intensity units carry over to later frames (a resumed run read a dark Livox
+                # scan after them in other units), and the summary counts it again.
+                _, valid, counts = predictor.prepare(frame.points)
+                tally(frame, valid, counts)
             else:
                 line = predict_frame(frame, count, label_path, mask_path, picture_path)
                 say(line)
@@ -625,6 +630,27 @@ def predict(
                 yield log_ns, level_frame, mount.levelled(frame.points), labels, frame.stamp_ns
             else:
                 yield log_ns, frame.frame_name, frame.points, labels, frame.stamp_ns
+
+    def tally(frame, valid, counts) -> str:
+        """Counts a thinned or empty frame into the summary; the note its line gets."""
+        dropped = counts["dropped_points"]
+        summary["thinned_frames"] += int(dropped > 0)
+        note = (
+            f"; {dropped} of {dropped + config.data.max_points} valid points left out "
+            f"(data.max_points={config.data.max_points}, the rest spread over the scan)"
+            if dropped
+            else ""
+        )
+        if not valid.any():
+            summary["empty_frames"].append(frame.frame_id)
+            note += (
+                f"; warning: none of its {len(frame.points)} points is valid "
+                f"({counts['nonfinite_points']} non-finite, {counts['blind_points']} within "
+                f"sim.min_range={config.sim.min_range} m of the sensor, "
+                f"{counts['outside_points']} outside the workspace {workspace}): check the "
+                "cloud's frame and units"
+            )
+        return note
 
     def predict_frame(frame, count, label_path, mask_path, picture_path) -> str:
         start = time.perf_counter()
@@ -640,30 +666,13 @@ def predict(
             pic = render_prediction(config, padded, valid, output, bev, labels, ids)
             kitti.atomic_write(picture_path, lambda p: pic.save(p, format="PNG"))
         kitti.write_labels(label_path, labels, names)  # last: marks the frame done
-        counts = predictor.last_counts
-        dropped = counts["dropped_points"]
-        summary["thinned_frames"] += int(dropped > 0)
+        note = tally(frame, valid, predictor.last_counts)
         factor = predictor.last_intensity_factor
         if factor != 1.0 and factor not in factors_said:
             factors_said.add(factor)
             say(
                 f"{frame.frame_id}: intensity scaled by {factor:.6g} and clipped to [0, 1], the "
                 f"simulator's reflectivity range ({intensity!r} units; --intensity sets them)"
-            )
-        note = (
-            f"; {dropped} of {dropped + config.data.max_points} valid points left out "
-            f"(data.max_points={config.data.max_points}, the rest spread over the scan)"
-            if dropped
-            else ""
-        )
-        if not valid.any():
-            summary["empty_frames"].append(frame.frame_id)
-            note += (
-                f"; warning: none of its {len(frame.points)} points is valid "
-                f"({counts['nonfinite_points']} non-finite, {counts['blind_points']} within "
-                f"sim.min_range={config.sim.min_range} m of the sensor, "
-                f"{counts['outside_points']} outside the workspace {workspace}): check the "
-                "cloud's frame and units"
             )
         done = summary["frames"] - summary["resumed_frames"]
         left = total - (summary["frames"] + len(summary["bad_frames"]))
