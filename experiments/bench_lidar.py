@@ -40,6 +40,8 @@ import numpy as np
 from indoorbev_sim import lidar, patterns
 from mujoco import mjx
 
+from indoorbev_jax.cli import nonnegative_int, positive_int
+
 CUTOFF = 30.0
 SENSOR = np.array([0.0, 0.0, 0.5])
 
@@ -238,11 +240,11 @@ def scenes_run(m, d, mx, dx, nscene, args):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--repeats", type=positive_int, default=7)
     ap.add_argument("--sets", default="mid360 frame,grid 360x64,random 1M")
     ap.add_argument(
         "--calls",
-        type=int,
+        type=positive_int,
         default=5,
         help="back-to-back calls timed after the first call of each run (their median)",
     )
@@ -262,12 +264,23 @@ def main():
     )
     ap.add_argument(
         "--scenes",
-        type=int,
+        type=nonnegative_int,
         default=0,
         help="instead of the backends: this many sensor poses, one MID-360 frame each, ours "
         "batched in one call against mj_multiRay over the poses (the issue's GPU row is 64)",
     )
     args = ap.parse_args()
+    unknown = set(args.sets.split(",")) - set(ray_sets())
+    if unknown:
+        ap.error(f"--sets: unknown {sorted(unknown)}; the sets are {', '.join(ray_sets())}")
+    try:
+        sizes = [int(n) for n in args.thread_sizes.split(",")] if args.thread_sizes else []
+    except ValueError:
+        ap.error(
+            f"--thread-sizes: expected ray counts separated by commas, got {args.thread_sizes!r}"
+        )
+    if any(n < 1 for n in sizes):
+        ap.error(f"--thread-sizes: counts must be > 0, got {args.thread_sizes!r}")
 
     m = mujoco.MjModel.from_xml_string(room_xml())
     d = mujoco.MjData(m)
@@ -289,7 +302,7 @@ def main():
         scenes_run(m, d, mx, dx, args.scenes, args)
         return
     if args.thread_sizes:
-        thread_sweep(mx, dx, origin, [int(n) for n in args.thread_sizes.split(",")], args)
+        thread_sweep(mx, dx, origin, sizes, args)
         return
     for name, dirs in ray_sets().items():
         if name not in args.sets.split(","):

@@ -153,6 +153,8 @@ def main(argv: list[str] | None = None) -> None:
                  "eval_batch"):  # fmt: skip
         if getattr(args, flag) < 1:
             parser.error(f"--{flag.replace('_', '-')} must be at least 1")
+    if args.eval_frames < args.eval_batch:
+        parser.error(f"--eval-frames {args.eval_frames}: at least --eval-batch {args.eval_batch}")
 
     rng = np.random.default_rng(0)
     h = w = args.size

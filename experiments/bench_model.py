@@ -37,7 +37,6 @@ Needs ``torch==2.13.0`` in the venv for the peer (benchmark-only, not a dependen
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import importlib.util
 import os
 import resource
@@ -51,7 +50,8 @@ import numpy as np
 import optax
 
 from indoorbev_jax import host_memory
-from indoorbev_jax.config import Config
+from indoorbev_jax.cli import nonnegative_int, positive_int
+from indoorbev_jax.config import Config, ConfigError, with_overrides
 from indoorbev_jax.models import IndoorBEV
 from indoorbev_jax.xla_flags import train_compiler_options
 
@@ -76,15 +76,9 @@ def make_inputs(cfg: Config, batch: int, seed: int = 0) -> tuple[np.ndarray, np.
 
 
 def apply_overrides(cfg: Config, settings: list[str]) -> Config:
-    """``section.field=value`` strings -> a new Config (ints, floats and 0/1 bools)."""
-    for item in settings:
-        key, value = item.split("=", 1)
-        section, field = key.split(".")
-        sub = getattr(cfg, section)
-        old = getattr(sub, field)
-        new = bool(int(value)) if isinstance(old, bool) else type(old)(value)
-        cfg = dataclasses.replace(cfg, **{section: dataclasses.replace(sub, **{field: new})})
-    return cfg
+    """``section.field=value`` strings -> a new Config (``config.with_overrides``: 0/1 or
+    true/false bools, checked values, errors naming the item)."""
+    return with_overrides(cfg, settings)
 
 
 def dummy_loss(preds) -> jax.Array:
@@ -162,6 +156,10 @@ def build_peer(preset: str, mode: str, batch: int, up_mode: str, bf16: bool = Fa
 
     torch.set_num_threads(2)
     cuda = jax.devices()[0].platform == "gpu" and torch.cuda.is_available()
+    # float32 matmuls on TF32 tensor cores, as XLA runs them on a GPU by default
+    # (jax_default_matmul_precision); torch's default is full FP32, 4-8x slower there.
+    torch.backends.cuda.matmul.allow_tf32 = True
+    torch.backends.cudnn.allow_tf32 = True
     device = torch.device("cuda" if cuda else "cpu")
     model = peer.build(preset, up_mode=up_mode).to(device)
     cfg = Config.preset(preset)
@@ -214,9 +212,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--preset", default="small", choices=["tiny", "small", "paper"])
     ap.add_argument("--mode", default="train", choices=["fwd", "train"])
-    ap.add_argument("--batch", type=int, default=4)
-    ap.add_argument("--reps", type=int, default=5, help="0: compile and memory only")
-    ap.add_argument("--warmup", type=int, default=1)
+    ap.add_argument("--batch", type=positive_int, default=4)
+    ap.add_argument("--reps", type=nonnegative_int, default=5, help="0: compile and memory only")
+    ap.add_argument("--warmup", type=nonnegative_int, default=1)
     ap.add_argument("--set", action="append", default=[], help="config override a.b=v")
     ap.add_argument(
         "--bf16", action="store_true", help="bfloat16 computation (ours; the peer's by autocast)"
@@ -257,8 +255,16 @@ def main(argv=None):
         ap.error("the peer has no tiny preset; add --only jax")
     if peers and importlib.util.find_spec("torch") is None:
         ap.error("the PyTorch peer needs torch (pip install torch); or add --only jax")
-    cfg = apply_overrides(Config.preset(a.preset), a.set)
-    label = f"{a.preset} {a.mode} B={a.batch}" + (f" [{' '.join(a.set)}]" if a.set else "")
+    try:
+        cfg = apply_overrides(Config.preset(a.preset), a.set)
+        apply_overrides(cfg, a.vs)
+    except ConfigError as e:
+        ap.error(str(e))
+    label = f"{a.preset} {a.mode} B={a.batch}" + (" bf16" if a.bf16 else "")
+    label += f" [{' '.join(a.set)}]" if a.set else ""
+    if peers and a.preset == "small":
+        note = "the peer's small preset is another network than ours (full memory, no skips, "
+        print(f"note: {note}no mask prior): only paper is like for like (docs/BENCHMARKS.md)")
     runners = {}
     if a.only != "torch":
         dtype = jnp.bfloat16 if a.bf16 else jnp.float32

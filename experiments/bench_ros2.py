@@ -28,6 +28,7 @@ import dataclasses
 import functools
 import json
 import os
+import shutil
 import statistics
 import struct
 import subprocess
@@ -208,6 +209,7 @@ def main(argv: list[str] | None = None) -> None:
     finally:
         executor.shutdown()
         runtime.stop_node(node, context)
+        shutil.rmtree(tmp, ignore_errors=True)  # the exported model
 
 
 if __name__ == "__main__":

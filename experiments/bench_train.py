@@ -17,6 +17,7 @@ import time
 
 import jax
 
+from indoorbev_jax.cli import positive_int
 from indoorbev_jax.config import Config
 from indoorbev_jax.sweep import init_sweep, make_sweep_step, stack_hypers
 from indoorbev_jax.train import Hyper, init_state, jit_train_step, make_train_step
@@ -75,10 +76,11 @@ def bench_preset(name: str, steps: int, batch_size: int | None, sweep_k: int) ->
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--presets", nargs="+", default=["tiny", "small"])
-    p.add_argument("--steps", type=int, default=10)
-    p.add_argument("--batch-size", type=int, default=None)
-    p.add_argument("--sweep-k", type=int, default=4)
+    p.add_argument("--presets", nargs="+", default=["tiny", "small"],
+                   choices=("paper", "small", "tiny"))  # fmt: skip
+    p.add_argument("--steps", type=positive_int, default=10)
+    p.add_argument("--batch-size", type=positive_int, default=None)
+    p.add_argument("--sweep-k", type=positive_int, default=4)
     args = p.parse_args(argv)
     print(f"devices: {jax.devices()}")
     for name in args.presets:

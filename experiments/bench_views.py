@@ -23,6 +23,7 @@ import time
 import jax
 import jax.numpy as jnp
 
+from indoorbev_jax.cli import positive_int
 from indoorbev_jax.config import VIEWS, InferenceConfig
 from indoorbev_jax.inference import (
     apply_views,
@@ -50,8 +51,8 @@ def _median_ms(fn, *args, reps: int) -> float:
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", default=SHIPPED, help="model file or run directory")
-    p.add_argument("--reps", type=int, default=10, help="timed calls per count and round")
-    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--reps", type=positive_int, default=10, help="timed calls per count and round")
+    p.add_argument("--rounds", type=positive_int, default=3)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     try:

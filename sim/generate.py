@@ -394,9 +394,9 @@ def reference_cast(tpl: scenes_mod.SceneTemplate, size, xpos, xmat, origin, dirs
     """
     m = copy.copy(tpl.mj_model)  # the template's model is cached and stays at rest
     m.geom_size[:] = size
-    rb, aabb = scenes_mod.geom_bounds(tpl, jnp.asarray(size))
-    m.geom_rbound[:] = np.asarray(rb)
-    m.geom_aabb[:] = np.asarray(aabb)
+    rb, aabb = scenes_mod.geom_bounds(tpl, np.asarray(size))
+    m.geom_rbound[:] = rb
+    m.geom_aabb[:] = aabb
     d = mujoco.MjData(m)
     d.geom_xpos[:] = xpos
     d.geom_xmat[:] = np.asarray(xmat).reshape(-1, 9)

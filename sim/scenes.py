@@ -561,18 +561,20 @@ def geom_state(tpl: SceneTemplate, scene: Scene, time: jax.Array):
     return size, xpos, xmat, refl
 
 
-def geom_bounds(tpl: SceneTemplate, size: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """MuJoCo's ``geom_rbound`` [..., G] and ``geom_aabb`` [..., G, 6] for these sizes."""
+def geom_bounds(tpl: SceneTemplate, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """MuJoCo's ``geom_rbound`` [..., G] and ``geom_aabb`` [..., G, 6] for these sizes, in
+    numpy (eager JAX sliced the G geoms one by one: half the time of the sequential
+    reference of experiments/bench_datagen.py went there)."""
     r, hl = size[..., 0], size[..., 1]
     by_kind = {
-        "box": (jnp.linalg.norm(size, axis=-1), size),
-        "ellipsoid": (jnp.max(size, axis=-1), size),
-        "sphere": (r, jnp.stack([r, r, r], -1)),
-        "capsule": (r + hl, jnp.stack([r, r, r + hl], -1)),
-        "cyl": (jnp.hypot(r, hl), jnp.stack([r, r, hl], -1)),
+        "box": (np.linalg.norm(size, axis=-1), size),
+        "ellipsoid": (np.max(size, axis=-1), size),
+        "sphere": (r, np.stack([r, r, r], -1)),
+        "capsule": (r + hl, np.stack([r, r, r + hl], -1)),
+        "cyl": (np.hypot(r, hl), np.stack([r, r, hl], -1)),
     }
     by_kind["hcyl"] = by_kind["cyl"]
-    by_kind["plane"] = (jnp.zeros_like(r), jnp.stack([size[..., 0], size[..., 1], 0 * r], -1))
-    rb = jnp.stack([by_kind[k][0][..., g] for g, k in enumerate(tpl.geom_kind)], -1)
-    half = jnp.stack([by_kind[k][1][..., g, :] for g, k in enumerate(tpl.geom_kind)], -2)
-    return rb, jnp.concatenate([jnp.zeros_like(half), half], -1)
+    by_kind["plane"] = (np.zeros_like(r), np.stack([size[..., 0], size[..., 1], 0 * r], -1))
+    rb = np.stack([by_kind[k][0][..., g] for g, k in enumerate(tpl.geom_kind)], -1)
+    half = np.stack([by_kind[k][1][..., g, :] for g, k in enumerate(tpl.geom_kind)], -2)
+    return rb, np.concatenate([np.zeros_like(half), half], -1)

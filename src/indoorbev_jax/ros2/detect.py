@@ -386,11 +386,11 @@ def run_detect_node(
                 if result.warning is not None:
                     # At most one a second: a sensor that sends bad clouds sends them at rate.
                     log.warning(result.warning, throttle_duration_sec=1.0)
-                if result.infer_ms:
-                    stats.infer.append(result.infer_ms)
-                else:
+                if not result.infer_ms:
                     stats.bad += 1
-                if result.stamp:
+                if result.stamp:  # unstamped clouds (warm-ups) leave every latency alone
+                    if result.infer_ms:
+                        stats.infer.append(result.infer_ms)
                     stats.transport.append((received - result.stamp) / 1e6)
                     stats.total.append((published - result.stamp) / 1e6)
                 done = max_frames and stats.processed >= max_frames
