@@ -32,14 +32,14 @@ from indoorbev_jax.cli import positive_int
 from indoorbev_jax.config import Config
 
 
-def main() -> None:
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--preset", default="small", choices=("paper", "small", "tiny"))
     parser.add_argument("--batch", type=positive_int, default=8)
     parser.add_argument("--repeats", type=positive_int, default=5)
     parser.add_argument("--ref-frames", type=positive_int, default=4,
                         help="reference frames per repeat (at most --batch)")  # fmt: skip
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.ref_frames > args.batch:
         parser.error(f"--ref-frames {args.ref_frames}: at most --batch ({args.batch}) frames")
     cfg = Config.preset(args.preset)

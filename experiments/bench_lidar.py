@@ -238,7 +238,7 @@ def scenes_run(m, d, mx, dx, nscene, args):
     print(f"  speed-up {med['ref'] / med['ours']:.2f}x; agreement {ok * 100:.4f} %")
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=positive_int, default=7)
     ap.add_argument("--sets", default="mid360 frame,grid 360x64,random 1M")
@@ -269,7 +269,7 @@ def main():
         help="instead of the backends: this many sensor poses, one MID-360 frame each, ours "
         "batched in one call against mj_multiRay over the poses (the issue's GPU row is 64)",
     )
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     unknown = set(args.sets.split(",")) - set(ray_sets())
     if unknown:
         ap.error(f"--sets: unknown {sorted(unknown)}; the sets are {', '.join(ray_sets())}")
