@@ -103,6 +103,25 @@ def test_global_transform_keeps_points_in_their_boxes():
         check_consistent(out)
 
 
+def test_a_pure_scale_is_exact_on_points_and_boxes():
+    """No flip, no turn, scale 1.25: x, y, z of points and boxes and the box sizes all grow
+    by 1.25 and yaw stays. A scale left off z passed every test before (points stayed
+    inside their margin-padded boxes; a mutation audit)."""
+    frame = make_frame()
+    cfg = dataclasses.replace(OFF, flip_prob=0.0, rotation=0.0, scale_range=(1.25, 1.25))
+    out = aug.global_transform(jax.random.key(0), frame, GRID, cfg)
+    kept = np.asarray(frame.point_valid) & np.asarray(out.point_valid)
+    assert kept.sum() > 100
+    np.testing.assert_allclose(np.asarray(out.points)[kept],
+                               np.asarray(frame.points)[kept] * [1.25, 1.25, 1.25, 1.0],
+                               rtol=1e-6, atol=1e-6)  # fmt: skip
+    t, t0 = out.targets, frame.targets
+    v = np.asarray(t0.valid)
+    np.testing.assert_allclose(np.asarray(t.pos)[v], np.asarray(t0.pos)[v] * 1.25, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(t.dims)[v], np.asarray(t0.dims)[v] * 1.25, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(t.yaw)[v], np.asarray(t0.yaw)[v], atol=1e-6)
+
+
 def test_box_noise_moves_points_with_boxes_without_new_overlap():
     frame = make_frame()
     cfg = dataclasses.replace(OFF, box_noise_prob=1.0, box_translation_std=0.3, box_yaw_std=0.3)

@@ -52,10 +52,14 @@ def predictions(logits, masks):
     )
 
 
-@pytest.mark.parametrize("score_threshold", [0.8, 0.4])
-def test_matches_numpy_rederivation(score_threshold):
+@pytest.mark.parametrize(
+    ("score_threshold", "mask_threshold"), [(0.8, 0.5), (0.4, 0.5), (0.4, 0.3), (0.4, 0.7)]
+)
+def test_matches_numpy_rederivation(score_threshold, mask_threshold):
+    """Also at mask thresholds other than 0.5: binarising at logit 0 whatever the setting
+    passed every test before (a mutation audit)."""
     rng = np.random.default_rng(0)
-    cfg = InferenceConfig(score_threshold=score_threshold)
+    cfg = InferenceConfig(score_threshold=score_threshold, mask_threshold=mask_threshold)
     logits = (4 * rng.standard_normal((3, 10, K))).astype(np.float32)
     # Rectangles of confident cells in noise: queries overlap partly, some lose too much.
     masks = rng.normal(-3.0, 1.0, (3, 10, 16, 18))
@@ -69,8 +73,9 @@ def test_matches_numpy_rederivation(score_threshold):
     np.testing.assert_array_equal(out.instance_classes, classes)
     np.testing.assert_array_equal(out.segment_valid, classes[:, 1:] != BG)
     np.testing.assert_allclose(out.det_scores, scores, rtol=1e-5, atol=1e-7)
-    np.testing.assert_array_equal(out.det_masks, masks >= 0)  # sigmoid >= 0.5 <=> logit >= 0
-    np.testing.assert_array_equal(out.det_valid, (masks >= 0).any((2, 3)))
+    binary = 1 / (1 + np.exp(-masks.astype(np.float64))) >= mask_threshold
+    np.testing.assert_array_equal(out.det_masks, binary)
+    np.testing.assert_array_equal(out.det_valid, binary.any((2, 3)))
     np.testing.assert_array_equal(out.det_classes, logits[..., :-1].argmax(-1))
     # Both branches of the overlap rule occur.
     p = np.exp(logits - logits.max(-1, keepdims=True))

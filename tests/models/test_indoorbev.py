@@ -181,4 +181,5 @@ def test_bfloat16_model_computes_its_output_heads_in_float32(params):
         on_lattice = np.asarray(jnp.asarray(x).astype(jnp.bfloat16).astype(jnp.float32)) == x
         assert x.dtype == np.float32 and on_lattice.mean() < 0.5
     ref = np.asarray(FORWARD(shifted, pts, valid).pos)
-    np.testing.assert_allclose(np.asarray(out.pos), ref, atol=0.5)  # same model, bf16 trunk
+    # The same model: the bfloat16 trunk alone moves these untrained outputs by up to 0.1 m.
+    np.testing.assert_allclose(np.asarray(out.pos), ref, atol=0.2)
