@@ -136,6 +136,11 @@ def test_to_labels_takes_the_fitted_or_the_regressed_box():
     np.testing.assert_allclose(segment_boxes(panoptic, [3, 1], GRID), expected)
     with pytest.raises(ValueError, match="segment 2 has no cell"):
         segment_boxes(panoptic, [2], GRID)
+    # A transposed (or cropped) map is refused: it fitted boxes in the wrong place.
+    with pytest.raises(ValueError, match=r"instance_ids: expected shape \(\d+, \d+\) \(the grid\)"):
+        segment_boxes(panoptic.T, [3], GRID)
+    with pytest.raises(ValueError, match=r"ids must be >= 1 \(0 is the background\), got \[0\]"):
+        segment_boxes(panoptic, [0, 3], GRID)
     with pytest.raises(ValueError, match='boxes="mask" needs the grid'):
         to_labels(final, output, "mask")
     with pytest.raises(ValueError, match=r"boxes: expected one of \('head', 'mask'\)"):

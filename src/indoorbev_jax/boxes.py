@@ -92,7 +92,13 @@ def segment_boxes(instance_ids: np.ndarray, ids, grid: GridConfig) -> np.ndarray
     """float64 [K, 5]: ``fit_box`` of the largest piece of each segment ``instance_ids == id``
     of a panoptic map [H, W] (the published ``mask_2``), for the K ``ids``, each present."""
     instance_ids = np.asarray(instance_ids)
+    if instance_ids.shape != grid.shape:  # a transposed map gave other boxes, silently
+        raise ValueError(
+            f"instance_ids: expected shape {grid.shape} (the grid), got {instance_ids.shape}"
+        )
     ids = np.asarray(ids, np.int64).reshape(-1)
+    if (ids < 1).any():
+        raise ValueError(f"ids must be >= 1 (0 is the background), got {ids[ids < 1].tolist()}")
     slices = ndimage.find_objects(instance_ids, max_label=int(ids.max(initial=0)))
     out = np.zeros((len(ids), 5))
     for k, i in enumerate(ids):
