@@ -18,6 +18,7 @@ import dataclasses
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from indoorbev_jax.cli import (
     INTERRUPTED,
@@ -29,10 +30,14 @@ from indoorbev_jax.cli import (
     rpy_argument,
     seed_int,
 )
-from indoorbev_jax.config import Config
+
+if TYPE_CHECKING:  # JAX loads in main, where Ctrl-C is caught (status 130, one line)
+    from indoorbev_jax.config import Config
 
 
 def _config(args) -> Config:
+    from indoorbev_jax.config import Config
+
     preset = args.preset
     if preset is None:  # export and show: the preset the folder was exported with
         from indoorbev_sim.export import saved_preset

@@ -657,3 +657,33 @@ def test_sim_ctrl_c_while_a_scene_is_generated_exits_cleanly(tmp_path, monkeypat
 
     with Reader(bag) as reader:  # a finished bag (maybe without a frame yet)
         assert {c.topic for c in reader.connections} == {"/sigint_test", "/lidar/objects"}
+
+
+DROPPED_CTRL_C = """
+import os, signal, time
+from indoorbev_jax.cli import exit_with
+from indoorbev_jax.ros2 import runtime
+
+def main():
+    try:  # as Python does with a KeyboardInterrupt raised in a garbage-collector callback
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    runtime.start_node("dropped")
+    print("node started")
+    return 0
+
+exit_with(main, "probe")
+"""
+
+
+def test_a_ctrl_c_dropped_during_the_start_up_stops_the_node_from_starting():
+    """Python drops a KeyboardInterrupt raised inside a gc callback (JAX has one): a Ctrl-C
+    during ``ros2 publish``'s start-up was lost and the node published until the next one.
+    The console scripts remember SIGINT, and ``start_node`` refuses to start after one."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    run = subprocess.run([sys.executable, "-c", DROPPED_CTRL_C], capture_output=True,
+                         text=True, timeout=120, env=env)  # fmt: skip
+    assert run.returncode == 130, run.stderr
+    assert "node started" not in run.stdout and "probe: interrupted" in run.stderr

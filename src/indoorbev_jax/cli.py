@@ -11,7 +11,9 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -482,6 +484,15 @@ def main(argv: list[str] | None = None) -> int:
 
 
 INTERRUPTED = 130  # the shell's status for a command stopped by Ctrl-C
+# Set by exit_with's SIGINT handler: Python prints and drops a KeyboardInterrupt raised
+# inside a garbage-collector callback (JAX has one), so a Ctrl-C during a start-up could be
+# lost and a node run on until the next one; ros2.runtime.start_node checks it.
+SIGINT_SEEN = threading.Event()
+
+
+def _remember_sigint(signum, frame):
+    SIGINT_SEEN.set()
+    raise KeyboardInterrupt
 
 
 def exit_with(main_fn, prog: str):
@@ -492,6 +503,8 @@ def exit_with(main_fn, prog: str):
     crashes (a segmentation fault after the warm-up of ``ros2 detect`` was cut short).
     Output files are written atomically, so nothing half-written is left under its name.
     """
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not if ignored
+        signal.signal(signal.SIGINT, _remember_sigint)
     try:
         status = main_fn()
     except KeyboardInterrupt:

@@ -95,3 +95,14 @@ def test_a_tilted_lidar_publishes_in_its_own_frame_and_the_truth_in_the_level_on
     assert hit.sum() > 100 and el.min() >= lo - 0.5 and el.max() <= hi + 0.5
     level = np.degrees(np.arctan2(points[hit, 2], np.linalg.norm(points[hit, :2], axis=1)))
     assert level.min() < lo - 15  # levelled, the tilt reaches below the pattern's floor
+
+
+def test_the_console_module_loads_no_jax_before_main():
+    """JAX loads inside ``main``, where Ctrl-C is caught (status 130, one line): imported at
+    module level, a Ctrl-C in the first second gave a traceback and status -2."""
+    import subprocess
+    import sys
+
+    probe = "import sys, indoorbev_sim.cli; print('jax' in sys.modules)"
+    run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+    assert run.stdout.strip() == "False", run.stderr
