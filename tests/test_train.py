@@ -372,6 +372,47 @@ def test_a_malformed_training_frame_is_named_and_skipped_when_asked(data, tmp_pa
         T.KittiSource(own, "train", CFG, seed=0, skip_bad=True)(0)
 
 
+def test_a_frame_with_more_objects_than_max_objects_is_named(data, tmp_path, caplog):
+    """Targets keep the first data.max_objects objects; the rest trained (and were scored)
+    as background without a word. Now the start refuses naming the file, and with
+    --skip-bad-frames the frame is left out, reported."""
+    import dataclasses
+    import shutil
+
+    own = tmp_path / "own"
+    shutil.copytree(data, own)
+    ids = kitti.read_split(own, "train")
+    counts = {i: len(kitti.read_labels(own / "label_2" / f"{i}.txt", CFG.data)) for i in ids}
+    crowded = max(counts, key=counts.get)
+    assert counts[crowded] >= 2
+    cfg = dataclasses.replace(
+        CFG, data=dataclasses.replace(CFG.data, max_objects=counts[crowded] - 1)
+    )
+    message = rf"{crowded}\.txt: {counts[crowded]} objects, more than data\.max_objects="
+    with pytest.raises(kitti.DatasetError, match=message + str(counts[crowded] - 1)):
+        T.KittiSource(own, "train", cfg, seed=0)
+    lenient = T.KittiSource(own, "train", cfg, seed=0, skip_bad=True)
+    with caplog.at_level("WARNING"):
+        for step in range(len(ids) // cfg.train.batch_size):
+            lenient(step)
+    assert f"skipping malformed frame {crowded}" in caplog.text
+
+
+def test_a_nan_validation_score_never_replaces_a_better_best(tmp_path):
+    """PQ is NaN on a validation split without objects when nothing is predicted: as a
+    number it took best/ from a step with PQ 0.3 for good."""
+    ckpt = T.Checkpoints(tmp_path, keep=2)
+
+    def state(step):
+        return T.TrainState(step=jnp.int32(step), params={"w": jnp.float32(step)}, opt_state=(),
+                            skipped=jnp.int32(0))  # fmt: skip
+
+    for step, pq in ((1, 0.3), (2, float("nan")), (3, 0.1)):
+        ckpt.save_best(state(step), {"pq": pq})
+    assert ckpt.best.best_step() == 1 and ckpt.best.all_steps() == [1]
+    ckpt.close()
+
+
 class _Stop(Exception):
     """Raised by the first train step of ``quick_start``: the start's checks have run."""
 

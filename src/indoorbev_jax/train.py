@@ -414,7 +414,8 @@ class KittiSource:
         self.bad: set[int] = set()
         if not skip_bad:  # before the run starts (and writes config.json), not at step k
             for frame_id in self.dataset.ids:
-                kitti.read_labels(kitti.frame_paths(root, frame_id)["labels"], config.data)
+                path = kitti.frame_paths(root, frame_id)["labels"]
+                _check_object_count(path, len(kitti.read_labels(path, config.data)), config)
 
     def _order(self, epoch: int) -> np.ndarray:
         return np.random.default_rng([self.seed, epoch]).permutation(len(self.dataset))
@@ -441,11 +442,31 @@ class KittiSource:
         return collate(items)
 
 
+def _check_object_count(path, objects: int, config: Config) -> None:
+    """More objects than ``data.max_objects`` is an error: the targets keep the first
+    ones, and the rest would train (and be scored) as background, without a word."""
+    limit = config.data.max_objects
+    if objects > limit:
+        raise kitti.DatasetError(
+            f"{path}: {objects} objects, more than data.max_objects={limit} (the rest would "
+            f"be background targets); --set data.max_objects={objects} or more"
+        )
+
+
+def _rank(value) -> float:
+    """A validation metric as ``best/`` ranks it: NaN or missing (JSON null) is -inf."""
+    return float(value) if value is not None and math.isfinite(value) else -math.inf
+
+
 def load_or_skip(dataset, index: int, skip_bad: bool, kind: str) -> Batch | None:
-    """Frame ``index`` of a ``KittiDataset``; a malformed one raises its error naming the
-    file, or with ``skip_bad`` is reported by name (as a ``kind``) and gives None."""
+    """Frame ``index`` of a ``KittiDataset``; a malformed one (or one with more objects than
+    ``data.max_objects``) raises its error naming the file, or with ``skip_bad`` is
+    reported by name (as a ``kind``) and gives None."""
     try:
-        return dataset.load(index)[0]
+        frame, stats = dataset.load(index)
+        path = kitti.frame_paths(dataset.root, dataset.ids[index])["labels"]
+        _check_object_count(path, stats.objects, dataset.config)
+        return frame
     except (kitti.DatasetError, OSError) as e:
         if not skip_bad:
             raise
@@ -517,7 +538,9 @@ class Checkpoints:
             return
         best_options = ocp.CheckpointManagerOptions(
             max_to_keep=1,
-            best_fn=lambda m: m[metric],
+            # NaN (a validation split without objects, nothing predicted) ranks last: as a
+            # number it replaced a better best/ for good.
+            best_fn=lambda m: _rank(m[metric]),
             best_mode="max",
             enable_async_checkpointing=False,
         )
