@@ -75,12 +75,6 @@ def make_inputs(cfg: Config, batch: int, seed: int = 0) -> tuple[np.ndarray, np.
     return pts, valid
 
 
-def apply_overrides(cfg: Config, settings: list[str]) -> Config:
-    """``section.field=value`` strings -> a new Config (``config.with_overrides``: 0/1 or
-    true/false bools, checked values, errors naming the item)."""
-    return with_overrides(cfg, settings)
-
-
 def dummy_loss(preds) -> jax.Array:
     return sum(jnp.mean(jnp.square(x.astype(jnp.float32))) for x in jax.tree.leaves(preds))
 
@@ -255,9 +249,9 @@ def main(argv=None):
         ap.error("the peer has no tiny preset; add --only jax")
     if peers and importlib.util.find_spec("torch") is None:
         ap.error("the PyTorch peer needs torch (pip install torch); or add --only jax")
-    try:
-        cfg = apply_overrides(Config.preset(a.preset), a.set)
-        apply_overrides(cfg, a.vs)
+    try:  # config.with_overrides: checked values, errors naming the item
+        cfg = with_overrides(Config.preset(a.preset), a.set)
+        vs_cfg = with_overrides(cfg, a.vs)
     except ConfigError as e:
         ap.error(str(e))
     label = f"{a.preset} {a.mode} B={a.batch}" + (" bf16" if a.bf16 else "")
@@ -280,7 +274,7 @@ def main(argv=None):
         )
         variants = []  # (settings shown in the name, config, XLA options)
         if a.vs:
-            variants.append((a.vs, apply_overrides(cfg, a.vs), None))
+            variants.append((a.vs, vs_cfg, None))
         for items in xla_variants:
             options = {
                 k: {"true": True, "false": False}.get(v, v)

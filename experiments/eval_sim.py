@@ -228,6 +228,12 @@ def add_frame_set_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=None, help=f"root seed (default: {seeds})")
 
 
+def check_frame_set(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuses (one line, status 2) ``--frames`` that ``--batch`` does not divide."""
+    if args.frames % args.batch:
+        p.error(f"--frames {args.frames} must be a multiple of --batch {args.batch}")
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_frame_set_arguments(p)
@@ -293,8 +299,7 @@ def main(argv=None) -> None:
     )
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(join_negative_values(argv))
-    if args.frames % args.batch:
-        p.error(f"--frames {args.frames} must be a multiple of --batch {args.batch}")
+    check_frame_set(p, args)
     if args.seed is None:
         args.seed = default_seed(args.split)
     try:

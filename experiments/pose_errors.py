@@ -40,7 +40,7 @@ import jax
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from eval_sim import add_frame_set_arguments, default_seed  # noqa: E402
+from eval_sim import add_frame_set_arguments, check_frame_set, default_seed  # noqa: E402
 
 from indoorbev_jax.boxes import fit_box, segment_boxes  # noqa: E402
 from indoorbev_jax.cli import add_views_argument  # noqa: E402
@@ -228,8 +228,7 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     if not 0.5 <= args.match_iou < 1.0:
         p.error(f"--match-iou must lie in [0.5, 1) for unique pairs, got {args.match_iou}")
-    if args.frames % args.batch:
-        p.error(f"--frames {args.frames} must be a multiple of --batch {args.batch}")
+    check_frame_set(p, args)
     try:
         config, params = load_model(args.model)
         config = with_thresholds(config, views=args.views)

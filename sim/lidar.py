@@ -569,6 +569,12 @@ def _cast_jax(geo: SceneGeometry, dirs, origin, max_range):
     return unchunk(dist), unchunk(gid)
 
 
+def repeat_scene(geo: SceneGeometry, n: int) -> SceneGeometry:
+    """One scene's ``SceneGeometry`` as n identical scenes (a broadcast: no copies), for n
+    ray sets or sensor poses in that scene."""
+    return jax.tree.map(lambda x: jnp.broadcast_to(x, (n,) + x.shape[1:]), geo)
+
+
 def cast_geometry(
     geo: SceneGeometry,
     origins: jax.Array,
@@ -591,7 +597,7 @@ def cast_geometry(
     if nscene == 1 and directions.ndim == 3 and directions.shape[0] > 1:
         # B ray sets in one scene: the scene is shared (a broadcast of its few fields).
         nscene = directions.shape[0]
-        geo = jax.tree.map(lambda x: jnp.broadcast_to(x, (nscene,) + x.shape[1:]), geo)
+        geo = repeat_scene(geo, nscene)
     if origins.ndim == 2 and origins.shape[0] not in (1, nscene):
         raise ValueError(
             f"origins [B, 3] holds one origin per scene ({nscene} here), got {origins.shape}; "

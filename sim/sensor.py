@@ -147,7 +147,7 @@ def scan(
     nposes = max(pos.shape[0], rot.shape[0])
     if nscene == 1 and nposes > 1:  # B poses in one scene: the scene is shared
         nscene, batched = nposes, True
-        geo = jax.tree.map(lambda x: jnp.broadcast_to(x, (nscene,) + x.shape[1:]), geo)
+        geo = lidar.repeat_scene(geo, nscene)
     for name, x in (("pos", pos), ("rot", rot)):
         if x.shape[0] not in (1, nscene):
             raise ValueError(f"pose.{name} holds {x.shape[0]} poses for {nscene} scenes")

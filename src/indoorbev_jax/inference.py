@@ -344,9 +344,9 @@ def apply_views(
       returns a pair); with several views, one layer of V * Q queries.
     """
     config = config or InferenceConfig()
-    if config.views == ("identity",):
-        return model.apply(params, points, valid, **apply_kwargs)
     out = forward_views(model, params, points, valid, config.views, **apply_kwargs)
+    if config.views == ("identity",):
+        return out
     stacked, extra = out if isinstance(out, tuple) else (out, None)
     fused = fuse_views(stacked, config.mask_threshold, config.view_iou)
     return fused if extra is None else (fused, extra)
