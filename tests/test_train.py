@@ -6,6 +6,7 @@ import hashlib
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -529,7 +530,7 @@ def test_resume_refuses_another_data_source(data, tmp_path, quick_start, monkeyp
     with pytest.raises(_Stop):
         T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
     folder = str(Path(data).resolve())
-    assert json.loads((workdir / "run.json").read_text()) == {"data": folder}
+    assert json.loads((workdir / "run.json").read_text()) == T.run_record(folder)
     with pytest.raises(ValueError) as refused:
         T.train_and_evaluate(CFG, workdir, data=None, progress=False)
     assert str(refused.value) == (
@@ -543,6 +544,27 @@ def test_resume_refuses_another_data_source(data, tmp_path, quick_start, monkeyp
     monkeypatch.chdir(Path(data).parent)  # the same folder spelled another way resumes
     with pytest.raises(_Stop):
         T.train_and_evaluate(CFG, workdir, data=f"./{Path(data).name}/", progress=False)
+
+
+def test_resume_refuses_a_changed_split_list(data, tmp_path, quick_start):
+    workdir, data = tmp_path / "run", shutil.copytree(data, tmp_path / "data")
+    with pytest.raises(_Stop):
+        T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
+    (workdir / "checkpoints" / "3").mkdir(parents=True)  # as if step 3 were saved
+    train_txt = Path(data) / "train.txt"
+    ids = train_txt.read_text().split()
+    record = json.loads((workdir / "run.json").read_text())
+    assert record["splits"]["train.txt"] == hashlib.sha256(train_txt.read_bytes()).hexdigest()
+    train_txt.write_text("\n".join(ids[::-1]) + "\n")  # the same frames in another order
+    with pytest.raises(ValueError) as refused:
+        T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
+    assert str(refused.value).startswith(
+        f"{workdir / 'run.json'}: {Path(data).resolve() / 'train.txt'} changed since the run "
+        f"started (sha256 {record['splits']['train.txt'][:12]} -> "
+    )
+    train_txt.write_text("\n".join(ids) + "\n")  # restored: resumes
+    with pytest.raises(_Stop):
+        T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
 
 
 def test_resume_names_changed_fields_and_allows_schedule_only_ones(

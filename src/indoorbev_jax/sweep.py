@@ -33,6 +33,7 @@ from indoorbev_jax.train import (
     make_sources,
     make_train_step,
     prefetch,
+    run_record,
     truncate_log,
     write_text_atomic,
 )
@@ -131,7 +132,7 @@ def run_sweep(
     if log_path.exists():
         truncate_log(log_path, start)
     # Written once every check has passed, as train_and_evaluate does.
-    write_text_atomic(run_path, json.dumps({"data": data_source}) + "\n")
+    write_text_atomic(run_path, json.dumps(run_record(data_source)) + "\n")
     write_text_atomic(config_path, config.to_json())
     write_text_atomic(hypers_path, json.dumps(settings) + "\n")
     database = None

@@ -738,6 +738,22 @@ def _describe_source(data: str | None) -> str:
     return "the simulator" if data is None else data
 
 
+SPLIT_FILES = ("train.txt", "val.txt")
+
+
+def run_record(data: str | None) -> dict:
+    """What ``run.json`` records of the data source: the folder (None for the simulator) and,
+    for a folder, the sha256 of its split lists, so a resume that would read other frames,
+    or the same ones in another order, is refused."""
+    if data is None:
+        return {"data": None}
+    splits = {}
+    for name in SPLIT_FILES:
+        path = Path(data) / name
+        splits[name] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+    return {"data": data, "splits": splits}
+
+
 def _has_checkpoint(workdir: Path) -> bool:
     """Whether ``workdir/checkpoints`` holds a finished step (orbax names them by step;
     an interrupted save is a ``<step>.orbax-checkpoint-tmp`` folder)."""
@@ -768,12 +784,24 @@ def check_resume(config_path: Path, run_path: Path, config: Config, data: str | 
         log.info("note: resuming with (saved -> given):\n%s", "\n".join(lines.values()))
     if not run_path.exists():  # a run from before run.json was kept: nothing to compare
         return
-    saved = json.loads(run_path.read_text())["data"]
+    record = json.loads(run_path.read_text())
+    saved = record["data"]
     if saved != data:
         raise ValueError(
             f"{run_path}: the run trained on {_describe_source(saved)}, this command gives "
             f"{_describe_source(data)} (if the same data moved, edit the data field of run.json)"
         )
+    if data is None or "splits" not in record or not _has_checkpoint(run_path.parent):
+        return  # the simulator, a run.json from before the digests, or nothing trained yet
+    now = run_record(data)["splits"]
+    for name, digest in record["splits"].items():
+        if now.get(name) != digest:
+            raise ValueError(
+                f"{run_path}: {Path(data) / name} changed since the run started (sha256 "
+                f"{str(digest)[:12]} -> {str(now.get(name))[:12]}), so the resumed run would "
+                "read other frames or another order: restore the list, or train in another "
+                "workdir (--init-from this one to start from its parameters)"
+            )
 
 
 def train_and_evaluate(
@@ -854,7 +882,7 @@ def train_and_evaluate(
     metrics_log = MetricsLog(workdir, start)
     if record is not None:
         write_text_atomic(workdir / "init_from.json", json.dumps(record, indent=2) + "\n")
-    write_text_atomic(run_path, json.dumps({"data": data_source}) + "\n")
+    write_text_atomic(run_path, json.dumps(run_record(data_source)) + "\n")
     write_text_atomic(config_path, config.to_json())
 
     database = None
