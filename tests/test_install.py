@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import re
+import shutil
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -53,3 +56,26 @@ def test_every_declared_requirement_is_pinned_within_its_bounds():
 def test_the_core_stack_is_pinned(name):
     # jaxlib is no requirement of ours but must move with jax.
     assert canonicalize_name(name) in read_pins()
+
+
+def test_a_built_package_holds_every_module(tmp_path):
+    # What a wheel (`pip install .`, not -e) holds: setuptools' build_py of pyproject.toml,
+    # in a copy without the editable install's egg-info (whose file list fills the gaps).
+    src = tmp_path / "src"
+    ignore = shutil.ignore_patterns("__pycache__")
+    shutil.copytree(ROOT / "src", src / "src", ignore=ignore)
+    shutil.copytree(ROOT / "sim", src / "sim", ignore=ignore)
+    shutil.copy(ROOT / "pyproject.toml", src)
+    shutil.copy(ROOT / "README.md", src)
+    build = tmp_path / "build"
+    subprocess.run(
+        [sys.executable, "-c", "from setuptools import setup; setup()", "-q", "build_py"]
+        + ["--build-lib", str(build)],
+        cwd=src,
+        check=True,
+        capture_output=True,
+    )
+    for package, folder in (("indoorbev_jax", "src/indoorbev_jax"), ("indoorbev_sim", "sim")):
+        source = {p.relative_to(src / folder) for p in (src / folder).rglob("*.py")}
+        built = {p.relative_to(build / package) for p in (build / package).rglob("*.py")}
+        assert built == source, f"{package}: not built {sorted(map(str, source - built))}"
