@@ -286,3 +286,33 @@ def test_float64_points_with_nan_rows_are_refused(tmp_path):
         points.tofile(tmp_path / f"{name}.bin")  # float64
         with pytest.raises(kitti.DatasetError, match=rf"{name}\.bin: looks like float64"):
             kitti.read_points(tmp_path / f"{name}.bin")
+
+
+def _room_scan(rows: int = 16, cols: int = 600) -> np.ndarray:
+    """float32 [rows * cols, 4]: a spinning lidar's points, in firing order, in a 6 x 4 m
+    room (walls, floor 0.5 m below, no ceiling)."""
+    az, el = np.meshgrid(np.linspace(-np.pi, np.pi, cols), np.radians(np.linspace(-15, 15, rows)))
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
+    with np.errstate(divide="ignore"):
+        floor = np.where(d[:, 2] < 0, 0.5 / -d[:, 2], np.inf)
+        t = np.min(np.abs([3 / d[:, 0], 2 / d[:, 1], floor]), 0)
+    intensity = np.random.default_rng(0).uniform(0, 1, len(d))
+    return np.c_[d * t[:, None], intensity].astype(np.float32)
+
+
+def test_three_or_five_column_clouds_are_refused(tmp_path):
+    """12 or 20 bytes a point pass the size rule whenever N % 4 == 0: read as 4 columns, the
+    points are garbage. A scan in firing order tells (consecutive points are near)."""
+    scan = _room_scan()
+    kitti.write_points(tmp_path / "ok.bin", scan)
+    np.testing.assert_array_equal(kitti.read_points(tmp_path / "ok.bin"), scan)
+    ring = np.arange(len(scan)) % 16
+    for cols, points in ((3, scan[:, :3]), (5, np.c_[scan, ring].astype(np.float32))):
+        assert points[: len(points) // 4 * 4].nbytes % 16 == 0
+        points[: len(points) // 4 * 4].tofile(tmp_path / f"c{cols}.bin")
+        with pytest.raises(kitti.DatasetError, match=rf"c{cols}\.bin: looks like {cols} float32"):
+            kitti.read_points(tmp_path / f"c{cols}.bin")
+    # Points in no particular order cannot tell: read as written (as before the check).
+    shuffled = scan[np.random.default_rng(1).permutation(len(scan))]
+    kitti.write_points(tmp_path / "shuffled.bin", shuffled)
+    np.testing.assert_array_equal(kitti.read_points(tmp_path / "shuffled.bin"), shuffled)
