@@ -14,6 +14,7 @@ from indoorbev_jax.config import (
     DataConfig,
     GridConfig,
     HeadConfig,
+    LossConfig,
     SimConfig,
     TrainConfig,
 )
@@ -61,6 +62,14 @@ def test_preset_grids():
         (lambda: SimConfig(min_range=math.nan), "sim.min_range"),
         (lambda: SimConfig(clearance=math.nan), "sim.clearance"),
         (lambda: DataConfig(class_map=(("Desk", "Table"), ("Desk", "Chair"))), "data.class_map"),
+        # Background weight 1 - alpha < 0 rewards positive background logits.
+        (lambda: LossConfig(focal_alpha=1.5), "loss.focal_alpha"),
+        # Names a KITTI label line cannot hold: split on whitespace, or skipped by the reader.
+        (lambda: DataConfig(class_names=("Table", "Misc item")), "data.class_names"),
+        (lambda: DataConfig(class_names=("Table", "DontCare")), "data.class_names"),
+        (lambda: DataConfig(class_names=("Table", "")), "data.class_names"),
+        (lambda: DataConfig(class_map=(("Side table", "Table"),)), "data.class_map"),
+        (lambda: DataConfig(class_map=(("DontCare", "Table"),)), "data.class_map"),
         (
             lambda: dataclasses.replace(Config.tiny(), head=HeadConfig(num_queries=4)),
             "data.max_objects",

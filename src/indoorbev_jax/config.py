@@ -147,6 +147,17 @@ def check_views(views: tuple[str, ...], grid: GridConfig) -> None:
                 )
 
 
+def _check_label_name(field: str, name) -> None:
+    """A class name must fit a KITTI label line: one whitespace-free field, not "DontCare"
+    (whose lines the reader skips)."""
+    if not isinstance(name, str) or not name or name.split() != [name] or name == "DontCare":
+        _fail(
+            field,
+            f"{name!r} cannot be a class name in a KITTI label line (one field without "
+            "whitespace, not 'DontCare')",
+        )
+
+
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
     """Point and target padding, classes (DESIGN sections 3-4)."""
@@ -170,6 +181,8 @@ class DataConfig:
         _check_positive("data.max_objects", self.max_objects)
         if len(set(self.class_names)) != len(self.class_names):
             _fail("data.class_names", f"names must be unique, got {self.class_names!r}")
+        for name in self.class_names:
+            _check_label_name("data.class_names", name)
         pairs = self.class_map
         if isinstance(pairs, dict):  # {"Desk": "Table"}, as --set data.class_map=... gives it
             pairs = tuple(pairs.items())
@@ -180,6 +193,8 @@ class DataConfig:
             _fail("data.class_map", f"expected (name, class) pairs or a dict, got {pairs!r}")
         object.__setattr__(self, "class_map", tuple(tuple(p) for p in pairs))
         sources = [src for src, _ in self.class_map]
+        for src in sources:
+            _check_label_name("data.class_map", src)
         for src in sources:
             if sources.count(src) > 1:  # dict() would silently keep the last target
                 _fail("data.class_map", f"'{src}' is mapped more than once: {self.class_map!r}")
@@ -367,6 +382,8 @@ class LossConfig:
                 _fail(f"loss.{f.name}", f"must be finite and >= 0, got {v!r}")
         if self.num_mask_points < 0:
             _fail("loss.num_mask_points", f"must be >= 0, got {self.num_mask_points}")
+        if self.focal_alpha > 1:  # the background weight 1 - alpha would turn negative
+            _fail("loss.focal_alpha", f"must be in [0, 1], got {self.focal_alpha!r}")
 
     def weights(self) -> dict[str, float]:
         """Loss weights as a flat dict, the form ``losses.set_loss`` takes (arrays allowed)."""

@@ -262,6 +262,30 @@ def test_dontcare_blank_lines_and_bom_are_not_objects(tmp_path):
         kitti.read_labels(tmp_path / "bad.txt", DATA)
 
 
+def test_labels_the_reader_would_refuse_are_not_written(tmp_path):
+    """A NaN value, or a ground-truth size that six decimals round to 0, made a file that
+    only failed when read back (by eval, maybe much later); the writer names the object."""
+    rng = np.random.default_rng(0)
+    for scores in (False, True):
+        labels = random_labels(rng, 3, scores)
+        labels.yaw[1] = np.nan
+        with pytest.raises(ValueError, match=r"bad\.txt: object 1: non-finite size, position"):
+            kitti.write_labels(tmp_path / "bad.txt", labels, CLASS_NAMES)
+        assert not (tmp_path / "bad.txt").exists()
+    labels = random_labels(rng, 3)
+    labels.dims[2, 0] = 4e-7
+    with pytest.raises(ValueError, match=r"object 2: ground-truth size 4e-07 x .* not positive"):
+        kitti.write_labels(tmp_path / "bad.txt", labels, CLASS_NAMES)
+    # The smallest size that is written is read back; a prediction's size may be anything.
+    labels.dims[2, 0] = 6e-7
+    kitti.write_labels(tmp_path / "gt.txt", labels, CLASS_NAMES)
+    assert kitti.read_labels(tmp_path / "gt.txt", DATA).dims[2, 0] == np.float32(1e-6)
+    labels = random_labels(rng, 3, scores=True)
+    labels.dims[2] = [-0.5, 0.0, 1e-9]
+    kitti.write_labels(tmp_path / "pred.txt", labels, CLASS_NAMES)
+    np.testing.assert_allclose(kitti.read_labels(tmp_path / "pred.txt", DATA).dims[2], [-0.5, 0, 0])
+
+
 def test_predicted_sizes_may_be_negative(tmp_path):
     """A scored line is a prediction: its regressed size is read as written (ground truth
     must be positive, test above)."""

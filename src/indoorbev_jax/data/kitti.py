@@ -232,6 +232,21 @@ def labels_to_lines(labels: ObjectLabels, class_names: tuple[str, ...]) -> list[
     for k in range(len(labels)):
         length, width, height = (float(v) for v in labels.dims[k])
         x, y, z = (float(v) for v in labels.pos[k])
+        values = [length, width, height, x, y, z, float(labels.yaw[k])]
+        if labels.scores is not None:
+            values.append(float(labels.scores[k]))
+        # Refused here, not when the file is read back (by eval, maybe much later).
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError(
+                f"object {k}: non-finite size, position, yaw or score {values} "
+                "(a label file holds finite numbers)"
+            )
+        written = [float(f"{v:.6f}") for v in (length, width, height)]
+        if labels.scores is None and not all(v > 0 for v in written):
+            raise ValueError(
+                f"object {k}: ground-truth size {length:g} x {width:g} x {height:g} m is not "
+                "positive at the label file's six decimals"
+            )
         rot_y = float(wrap_angle(-float(labels.yaw[k]) - math.pi / 2))
         # Six decimals round +-pi to +-3.141593, outside KITTI's [-pi, pi].
         rot_y = min(max(rot_y, -ROT_Y_LIMIT), ROT_Y_LIMIT)
@@ -257,7 +272,10 @@ def labels_to_lines(labels: ObjectLabels, class_names: tuple[str, ...]) -> list[
 def write_labels(
     path: str | os.PathLike, labels: ObjectLabels, class_names: tuple[str, ...]
 ) -> None:
-    text = "".join(line + "\n" for line in labels_to_lines(labels, class_names))
+    try:
+        text = "".join(line + "\n" for line in labels_to_lines(labels, class_names))
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
     atomic_write(Path(path), lambda p: p.write_text(text))
 
 
