@@ -55,7 +55,8 @@ class FrameInfo:
         frame's; the lidar's tilt in it is ``scene.sensor_rpy``).
       time: float32 [B], seconds since the start of the sequence.
       frame_index: int32 [B], scan pattern frame.
-      scene: the ``scenes.Scene`` [B] the frame shows (posed at ``time``).
+      scene: the ``scenes.Scene`` [B] the frame shows, its poses at t = 0
+        (``scenes.object_poses(scene, time)`` gives the frame's: moving objects differ).
     """
 
     num_points: jax.Array

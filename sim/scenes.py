@@ -210,6 +210,22 @@ class Scene:
     sensor_rpy: jax.Array
 
 
+def check_sensor_height(sim: SimConfig) -> None:
+    """Raises ``ValueError`` when ``sim.sensor_height`` reaches within ``sim.min_range`` of
+    the lowest ceiling of ``sim.layouts``: a lidar in or above the ceiling slab sees no
+    object, and its frames would come out without targets, unannounced."""
+    kinds = [layouts.LAYOUTS[layouts.LAYOUT_INDEX[k]] for k in sim.layouts]
+    lowest = min(k.ceiling[0] for k in kinds)
+    if sim.sensor_height[1] > lowest - sim.min_range:
+        low = [k.name for k in kinds if k.ceiling[0] == lowest]
+        raise ValueError(
+            f"sim.sensor_height: up to {sim.sensor_height[1]} m reaches the ceiling: the lowest "
+            f"ceilings ({', '.join(low)} rooms) are {lowest} m, so the lidar must stay below "
+            f"{lowest - sim.min_range:.2f} m (the ceiling less sim.min_range); or leave "
+            f"{', '.join(low)} out of sim.layouts"
+        )
+
+
 def allowed_plans(sim: SimConfig, split: str) -> np.ndarray:
     """Plan ids a split draws from: test the held-out plans, train/val all others."""
     n = len(layouts.LAYOUTS) * sim.plans_per_layout
@@ -336,6 +352,7 @@ def sample_scene(key: jax.Array, config: Config, test=False) -> Scene:
         the train/val ones (``split_flag``).
     """
     sim = config.sim
+    check_sensor_height(sim)
     tpl = template_for(config)
     num_slots = tpl.num_slots
     frames_span = (sim.frames_per_sequence - 1) * sim.frame_dt  # seconds from first to last

@@ -836,3 +836,29 @@ def test_train_step_lowers_to_plain_xla_ops(batch, step_fn):
     state = T.init_state(CFG, jax.random.key(0))
     lowered = step_fn.lower(state, batch, jax.random.key(1), T.Hyper.from_config(CFG))
     assert "custom_call" not in lowered.as_text()
+
+
+def test_box_targets_are_the_augmented_boxes_rasterised(data):
+    """data.mask_targets=box trains on each object's labelled box: after augmentation, the
+    boxes as moved, rasterised afresh (the warped source rasters differ cell by cell)."""
+    from indoorbev_jax.augment import augment_batch
+    from indoorbev_jax.data.rasterize import rasterize_boxes
+
+    config = with_overrides(CFG, ["data.mask_targets=box"])
+    batch = T.box_targets(next(KittiDataset(data, "train", config).batches(2)), config.grid)
+    key = jax.random.key(3)
+    out = T.training_batch(config, batch, key)
+    t = out.targets
+    boxes = jnp.concatenate([t.pos[..., :2], t.dims[..., :2], t.yaw[..., None]], -1)
+    ids, masks = jax.vmap(rasterize_boxes, in_axes=(0, 0, None))(boxes, t.valid, config.grid)
+    np.testing.assert_array_equal(t.masks, masks)
+    np.testing.assert_array_equal(t.instance_ids, ids)
+    warped = augment_batch(key, batch, config.grid, config.augment)  # what was trained before
+    assert (np.asarray(warped.targets.masks) != np.asarray(masks)).any()
+
+
+def test_an_empty_object_database_is_named(data):
+    batch = next(KittiDataset(data, "train", CFG).batches(2))
+    empty = batch.replace(targets=batch.targets.replace(valid=batch.targets.valid & False))
+    with pytest.raises(ValueError, match="augment.gt_sampling: the first 2 training batches"):
+        T.gt_database(lambda i: empty, 2, CFG.grid)

@@ -21,8 +21,20 @@ from indoorbev_jax.types import Batch, Targets
 
 # Points this close outside a box still belong to it (lidar hits lie on its surface).
 BOX_MARGIN = 0.03
+# A moved or pasted box may hold at most this many scene points (no object's) above the
+# floor it stands on, FLOOR_MARGIN up: more means a wall or unlabelled clutter.
+SCENE_POINTS_LIMIT = 5
+FLOOR_MARGIN = 0.05
+# Most azimuth bins of the free-space test of ground-truth sampling (_beyond_returns).
+FREE_SPACE_BINS = 720
 # fold_in constant of the intensity-drop draw (see point_noise).
 INTENSITY_FOLD = 1_000_003
+
+
+def _wrap(yaw: jax.Array) -> jax.Array:
+    """``wrap_angle`` that leaves yaws already in [-pi, pi) bit for bit (the float32 round
+    trip through ``+ pi`` moves about half of them by an ulp)."""
+    return jnp.where((yaw >= -jnp.pi) & (yaw < jnp.pi), yaw, wrap_angle(yaw))
 
 
 def _rot(theta: jax.Array) -> jax.Array:
@@ -108,7 +120,7 @@ def global_transform(key: jax.Array, frame: Batch, grid: GridConfig, cfg: Augmen
     xy = frame.points[:, :2] @ linear.T
     points = jnp.concatenate([xy, frame.points[:, 2:3] * scale, frame.points[:, 3:]], axis=1)
     pos = jnp.concatenate([t.pos[:, :2] @ linear.T, t.pos[:, 2:] * scale], axis=1)
-    yaw = wrap_angle(jnp.where(flip, -t.yaw, t.yaw) + theta)
+    yaw = _wrap(jnp.where(flip, -t.yaw, t.yaw) + theta)
     inverse = jnp.concatenate([linear_inverse, jnp.zeros((2, 1))], axis=1)  # [2, 3]
     masks = warp_masks(t.masks, jnp.broadcast_to(inverse, (t.masks.shape[0], 2, 3)), grid)
     targets = t.replace(pos=pos, dims=t.dims * scale, yaw=yaw, masks=masks)
@@ -151,10 +163,13 @@ def point_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConf
 def box_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig) -> Batch:
     """Moves, turns and rescales single objects together with their points and footprints.
 
-    An object whose moved footprint would overlap another object's more than before keeps
-    its original pose. Every object is checked against the others' new poses, again after
-    each round of undone moves (an undone object returns to a place another may have moved
-    into), until no kept move overlaps more than before.
+    An object whose moved box would hold more than ``SCENE_POINTS_LIMIT`` scene points
+    (points of no object: walls, unlabelled clutter) above its floor keeps its original pose,
+    as ground-truth sampling refuses such a pose; wall-bound furniture would otherwise be
+    pushed into the wall. An object whose moved footprint would overlap another object's
+    more than before keeps its original pose too. Every object is checked against the
+    others' new poses, again after each round of undone moves (an undone object returns to a
+    place another may have moved into), until no kept move overlaps more than before.
     """
     t = frame.targets
     m = t.classes.shape[0]
@@ -163,6 +178,20 @@ def box_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig
     shift = cfg.box_translation_std * jax.random.normal(k_t, (m, 2))
     dyaw = cfg.box_yaw_std * jax.random.normal(k_yaw, (m,))
     scale = jnp.exp(cfg.box_scale_std * jax.random.normal(k_s, (m,)))
+
+    inside = points_in_boxes(frame.points, t.pos, t.dims, t.yaw, t.valid)  # [M, N]
+    has_owner = inside.any(0) & frame.point_valid
+    scene = frame.point_valid & ~has_owner
+    new_dims = t.dims * scale[:, None]
+    bottom = t.pos[:, 2] - 0.5 * t.dims[:, 2] + FLOOR_MARGIN  # [M], the floor it stands on
+    top = t.pos[:, 2] + 0.5 * new_dims[:, 2]
+    d = frame.points[None, :, :2] - (t.pos[:, :2] + shift)[:, None, :]  # [M, N, 2]
+    local = jnp.einsum("mji,mnj->mni", _rot(t.yaw + dyaw), d)  # rotate by -yaw'
+    z = frame.points[None, :, 2]
+    # With the margin that makes a point the box's own: a wall 2 cm away would be.
+    in_moved = (jnp.abs(local) <= 0.5 * new_dims[:, None, :2] + BOX_MARGIN).all(-1)
+    in_moved &= (z > bottom[:, None]) & (z <= top[:, None]) & scene[None]
+    on &= in_moved.sum(1) <= SCENE_POINTS_LIMIT
 
     # dest -> source: c + R(-dyaw) (dest - c - shift) / scale
     rinv = jnp.swapaxes(_rot(dyaw), -1, -2) / scale[:, None, None]  # [M, 2, 2]
@@ -189,10 +218,8 @@ def box_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig
     dyaw_on = jnp.where(on, dyaw, 0.0)
     scale_on = jnp.where(on, scale, 1.0)
 
-    inside = points_in_boxes(frame.points, t.pos, t.dims, t.yaw, t.valid)  # [M, N]
     # First containing box (a min over indices; argmax over bool is slow on XLA:CPU).
     owner = jnp.min(jnp.where(inside, jnp.arange(m)[:, None], m - 1), axis=0)
-    has_owner = inside.any(0) & frame.point_valid
     c = t.pos[owner]  # [N, 3]
     rel = frame.points[:, :3] - c
     xy = jnp.einsum("nij,nj->ni", _rot(dyaw_on[owner]), rel[:, :2]) * scale_on[owner, None]
@@ -205,7 +232,7 @@ def box_noise(key: jax.Array, frame: Batch, grid: GridConfig, cfg: AugmentConfig
     targets = t.replace(
         pos=pos,
         dims=t.dims * scale_on[:, None],
-        yaw=wrap_angle(t.yaw + dyaw_on),
+        yaw=_wrap(t.yaw + dyaw_on),
         masks=masks,
     )
     return _finish(points, frame.point_valid, targets, grid)
@@ -271,7 +298,7 @@ def build_object_database(
     Args:
       batch: a batch (leading axis B) of frames.
       grid: the BEV grid of the batch.
-      max_points: P, points kept per object (the first ones found).
+      max_points: P, points kept per object (evenly spaced over its points in cloud order).
       patch_cells: S, side of the local footprint patch in cells (default: 4 m worth).
 
     Returns:
@@ -283,7 +310,12 @@ def build_object_database(
     def one_frame(frame_points, frame_valid, t: Targets):
         inside = points_in_boxes(frame_points, t.pos, t.dims, t.yaw, t.valid)  # [M, N]
         inside &= frame_valid[None]
-        order = jnp.argsort(~inside, axis=1, stable=True)[:, :max_points]  # [M, P]
+        # P points evenly spaced over the object's (a scan stores them in firing order: the
+        # first P would be an azimuth slice of a large object).
+        order = jnp.argsort(~inside, axis=1, stable=True)  # [M, N], the object's points first
+        count = inside.sum(1, keepdims=True)  # [M, 1]
+        pick = jnp.arange(max_points)[None, :] * jnp.maximum(count, max_points) // max_points
+        order = jnp.take_along_axis(order, jnp.minimum(pick, order.shape[1] - 1), axis=1)
         keep = jnp.take_along_axis(inside, order, axis=1)
         pts = frame_points[order]  # [M, P, 4]
         rel = pts[..., :2] - t.pos[:, None, :2]
@@ -316,14 +348,36 @@ def build_object_database(
     )
 
 
+def _beyond_returns(points: jax.Array, valid: jax.Array, grid: GridConfig) -> jax.Array:
+    """bool [H, W]: cells farther from the sensor (the origin) than every valid return in
+    their direction: the farthest return of each azimuth bin (half a degree, or wider for a
+    point buffer under 5,760: N / 8 bins; an empty bin takes the nearer of its neighbours';
+    without either it counts as unseen). Cells just behind a wall may pass (up to the wall's
+    range change across a bin, a few cm), whole objects behind it do not."""
+    # About 8 points a bin, at most half a degree: a sparse cloud leaves fine bins empty.
+    bins = int(np.clip(points.shape[0] // 8, 36, FREE_SPACE_BINS))
+    azimuth = jnp.arctan2(points[:, 1], points[:, 0])
+    b = jnp.clip(jnp.floor((azimuth + jnp.pi) / (2 * jnp.pi) * bins), 0, bins - 1)
+    r = jnp.where(valid, jnp.hypot(points[:, 0], points[:, 1]), 0.0)
+    farthest = jnp.zeros(bins).at[b.astype(jnp.int32)].max(r)
+    nearer_neighbour = jnp.minimum(jnp.roll(farthest, 1), jnp.roll(farthest, -1))
+    farthest = jnp.where(farthest > 0, farthest, nearer_neighbour)
+    xs, ys = cell_centers(grid)
+    px, py = jnp.meshgrid(xs, ys)  # [H, W]
+    cb = jnp.clip(jnp.floor((jnp.arctan2(py, px) + jnp.pi) / (2 * jnp.pi) * bins), 0, bins - 1)
+    return jnp.hypot(px, py) > farthest[cb.astype(jnp.int32)]
+
+
 def gt_sampling(
     key: jax.Array, frame: Batch, database: ObjectDatabase, grid: GridConfig, cfg: AugmentConfig
 ) -> Batch:
     """Pastes up to ``cfg.gt_sampling`` database objects at random free poses.
 
     A candidate pose is rejected when its footprint touches any existing or already pasted
-    footprint, or when more than 5 scene points above floor level fall inside its box
-    (walls, unlabelled clutter). Pasted objects take free target slots and free point
+    footprint, when more than 5 scene points above floor level fall inside its box (walls,
+    unlabelled clutter), or when any footprint cell lies beyond the lidar's returns in its
+    direction (``_beyond_returns``: behind the room's walls, where the sensor sees nothing
+    and both other tests pass). Pasted objects take free target slots and free point
     slots; scene points under a pasted footprint and inside its height are removed.
     """
     d_count, s = database.footprints.shape[0], database.footprints.shape[1]
@@ -352,12 +406,13 @@ def gt_sampling(
         occupied = (t.masks & t.valid[:, None, None]).any(0)
         hits_object = (fps & occupied).any((1, 2))
         ci, cj, _ = cell_index(points[:, 0], points[:, 1], grid)
-        floor_z = database.z[d] - 0.5 * database.dims[d, 2] + 0.05
+        floor_z = database.z[d] - 0.5 * database.dims[d, 2] + FLOOR_MARGIN
         top_z = database.z[d] + 0.5 * database.dims[d, 2]
         in_height = (points[:, 2] > floor_z) & (points[:, 2] <= top_z) & valid  # [N]
         under = fps[:, ci, cj]  # [A, N]
-        hits_scene = (under & in_height).sum(1) > 5
-        ok = fps.any((1, 2)) & ~hits_object & ~hits_scene
+        hits_scene = (under & in_height).sum(1) > SCENE_POINTS_LIMIT
+        unseen = (fps & beyond).any((1, 2))
+        ok = fps.any((1, 2)) & ~hits_object & ~hits_scene & ~unseen
         pick = jnp.argmax(ok)
         slot = jnp.argmin(t.valid)  # first free target slot
         accept = ok[pick] & ~t.valid[slot]
@@ -376,12 +431,13 @@ def gt_sampling(
             classes=put(t.classes, database.classes[d]),
             dims=put(t.dims, database.dims[d]),
             pos=put(t.pos, jnp.concatenate([xy[pick], database.z[d][None]])),
-            yaw=put(t.yaw, wrap_angle(yaw[pick])),
+            yaw=put(t.yaw, _wrap(yaw[pick])),
             valid=put(t.valid, True),
             masks=put(t.masks, fp),
         )
         return (points, valid, t), None
 
+    beyond = _beyond_returns(frame.points, frame.point_valid, grid)
     keys = jax.random.split(key, cfg.gt_sampling)
     (points, valid, t), _ = jax.lax.scan(
         paste, (frame.points, frame.point_valid, frame.targets), keys
@@ -402,13 +458,14 @@ def augment(
     if database is not None and cfg.gt_sampling:
         frame = gt_sampling(k_gt, frame, database, grid, cfg)
     had_points = _object_points(frame).sum(-1) > 0
+    had_centre = _centre_in(frame.targets, grid)
     if cfg.box_noise_prob:
         frame = box_noise(k_box, frame, grid, cfg)
     frame = global_transform(k_glob, frame, grid, cfg)
     if cfg.mask_perturb_prob:
         frame = mask_perturbation(k_mask, frame, grid, cfg)
     frame = point_noise(k_pts, frame, grid, cfg)
-    return drop_lost_objects(frame, had_points, grid)
+    return drop_lost_objects(frame, had_points, grid, had_centre)
 
 
 def _object_points(frame: Batch) -> jax.Array:
@@ -418,19 +475,29 @@ def _object_points(frame: Batch) -> jax.Array:
     return inside & frame.point_valid[None, :]
 
 
-def drop_lost_objects(frame: Batch, had_points: jax.Array, grid: GridConfig) -> Batch:
-    """Targets an augmentation moved out of sight leave the frame: as the simulator labels
-    (``sim/labels.py``), an object stays only with its centre inside the grid, a non-empty
-    footprint and, when it had lidar points before (``had_points`` [M]), at least one
-    still; a rotation near a corner would otherwise leave targets with nothing to see."""
-    t = frame.targets
+def _centre_in(t: Targets, grid: GridConfig) -> jax.Array:
     x, y = t.pos[:, 0], t.pos[:, 1]
-    centre_in = (
+    return (
         (x >= grid.x_range[0]) & (x <= grid.x_range[1])
         & (y >= grid.y_range[0]) & (y <= grid.y_range[1])
     )  # fmt: skip
+
+
+def drop_lost_objects(
+    frame: Batch, had_points: jax.Array, grid: GridConfig, had_centre: jax.Array | None = None
+) -> Batch:
+    """Targets an augmentation moved out of sight leave the frame: as the simulator labels
+    (``sim/labels.py``), an object stays only with its centre inside the grid (when it was
+    inside before, ``had_centre`` [M], default all: a dataset's object centred just off the
+    grid is a target, in training as in validation), a non-empty footprint and, when it had
+    lidar points before (``had_points`` [M]), at least one still; a rotation near a corner
+    would otherwise leave targets with nothing to see."""
+    t = frame.targets
+    centre_ok = _centre_in(t, grid)
+    if had_centre is not None:
+        centre_ok |= ~had_centre
     seen = _object_points(frame).any(-1) | ~had_points
-    valid = t.valid & centre_in & t.masks.any((1, 2)) & seen
+    valid = t.valid & centre_ok & t.masks.any((1, 2)) & seen
     return _finish(frame.points, frame.point_valid, t.replace(valid=valid), grid)
 
 

@@ -204,3 +204,15 @@ def test_tilt_jitter_draws_each_scene_a_tilt_and_moves_no_other_draw(sampled):
     np.testing.assert_allclose(np.bincount(quadrant, minlength=4) / n, 0.25, atol=0.07)
     with pytest.raises(ConfigError, match=r"'sim.sensor_tilt_jitter': expected degrees in"):
         SimConfig(sensor_tilt_jitter=-1.0)
+
+
+def test_a_lidar_at_the_ceiling_is_refused():
+    """A ceiling mount above the lowest ceiling (corridors, 2.5 m) gave frames without
+    targets, unannounced; in halls alone (3.2 m up) it is below every ceiling."""
+    high = dataclasses.replace(CFG.sim, sensor_height=(2.75, 2.75), sensor_rpy=(180.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match=r"sim.sensor_height: up to 2.75 m reaches the ceiling: "
+                       r"the lowest ceilings \(corridor rooms\) are 2.5 m"):  # fmt: skip
+        generate.sample_scenes(jax.random.key(0), dataclasses.replace(CFG, sim=high), 2)
+    halls = dataclasses.replace(high, layouts=("hall",), test_layouts=("hall/7",))
+    scene = generate.sample_scenes(jax.random.key(0), dataclasses.replace(CFG, sim=halls), 8)
+    assert (np.asarray(scene.sensor_height) < np.asarray(scene.room.ceiling) - 0.1).all()
