@@ -170,6 +170,7 @@ def publish(
     sent = late = 0
     first = last = 0.0  # monotonic times of the first and last frame
     recorder = producer = None
+    recording_stopped = False  # the writer failed: publishing goes on unrecorded
     context, node = runtime.start_node("indoorbev_sim", ros_args)
     try:  # from here on, Ctrl-C still finishes the recording and stops the node
         reliable = runtime.qos(True, 5)
@@ -221,9 +222,11 @@ def publish(
             truth = ts.serialize_cdr(truth, MARKER_ARRAY)
             pub_points.publish(bytes(cloud))
             pub_objects.publish(bytes(truth))
-            if recorder is not None:
-                recorder.write(points_name, stamp, bytes(cloud))
-                recorder.write(objects_name, stamp, bytes(truth))
+            if recorder is not None and not recording_stopped:
+                ok = recorder.write(points_name, stamp, bytes(cloud))
+                if not (ok and recorder.write(objects_name, stamp, bytes(truth))):
+                    recording_stopped = True
+                    node.get_logger().error(f"{recorder.error}; publishing goes on unrecorded")
             sent += 1
             next_time += period
         time.sleep(0.5)  # let reliable deliveries of the last frames complete
@@ -240,11 +243,19 @@ def publish(
                 # thread is inside jitted code aborts (SIGABRT, "FATAL: exception not
                 # rethrown"), so a Ctrl-C that came mid-scene would end in status 134.
                 producer.join()
+            recording_failed = None
             if recorder is not None:
-                print(f"indoorbev-sim ros2 publish: recorded into {recorder.close()}",
-                      flush=True)  # fmt: skip
+                try:
+                    print(f"indoorbev-sim ros2 publish: recorded into {recorder.close()}",
+                          flush=True)  # fmt: skip
+                except RuntimeError as e:  # the node still stops and reports
+                    recording_failed = (
+                        f"{e}; {recorder.counts} messages were written, into {recorder.partial}"
+                    )
             runtime.stop_node(node, context)
     achieved = (sent - 1) / (last - first) if sent > 1 and last > first else 0.0
     summary = {"frames": sent, "rate_hz": round(achieved, 2), "late": late}
     print(f"indoorbev-sim ros2 publish: {summary}", flush=True)
+    if recording_failed:
+        raise OSError(recording_failed)
     return summary

@@ -453,6 +453,13 @@ def test_organized_cloud_with_padded_rows_reads_each_point_once():
     msg.row_step, msg.fields[2].offset = width * 16 + pad, 14
     with pytest.raises(BagError, match=r"scan: field 'z' \(4 bytes at offset 14\) runs past"):
         pointcloud2_to_points(msg, "scan")
+    # point_step 0 asks for no bytes at all: the field check must come before any size.
+    msg.fields[2].offset, msg.point_step, msg.row_step = 8, 0, 0
+    msg.width = msg.height = 2**32 - 1
+    with pytest.raises(
+        BagError, match=r"scan: field 'x' \(4 bytes at offset 0\) runs past point_step 0"
+    ):
+        pointcloud2_to_points(msg, "scan")
 
 
 def test_livox_cdr_decoder_equals_rosbags(tmp_path):

@@ -1,6 +1,7 @@
 """Live ROS 2 nodes: message builders, bad input, and the sim -> detect loop over loopback."""
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import os
@@ -152,6 +153,16 @@ def test_detector_bad_input(detector):
     )  # fmt: skip
     result = detector.process(bytes(TS.serialize_cdr(no_z, POINTCLOUD2)))
     assert "lacks field(s) ['z']" in result.warning and "test_lidar" in result.warning
+    _assert_empty(result)
+    # point_step 0 and a 2^64-point header in 113 bytes: a warning, not a failed worker.
+    zero = TS.types[POINTCLOUD2](
+        header=header(TS, 10**9, "test_lidar"), height=2**32 - 1, width=2**32 - 1,
+        fields=[pf(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate("xyz")],
+        is_bigendian=False, point_step=0, row_step=0, data=np.zeros(0, np.uint8),
+        is_dense=True,
+    )  # fmt: skip
+    result = detector.process(bytes(TS.serialize_cdr(zero, POINTCLOUD2)))
+    assert "field 'x' (4 bytes at offset 0) runs past point_step 0" in result.warning
     _assert_empty(result)
     # Empty cloud, all-NaN cloud, bytes that are no PointCloud2.
     result = detector.process(_raw_cloud(np.zeros((0, 4), np.float32)))
@@ -504,6 +515,10 @@ def test_silence_hint_names_the_likely_qos_cause():
     assert hint.startswith("/livox/lidar: 2 publisher(s) but no cloud arrived in 5 s")
     assert "best-effort" in hint and "--reliable" in hint
     assert "needs a reliable publisher" in silence_hint(0, 1, "/livox/lidar", True)
+    assert "needs a reliable publisher" in silence_hint(0, 1, "/livox/lidar", True, 0)
+    # A reliable publisher that is idle (a driver still starting): QoS is not the cause.
+    idle = silence_hint(0, 2, "/livox/lidar", True, 1)
+    assert idle.endswith("1 of them reliable, so QoS is not the cause: they have sent nothing yet")
 
 
 def test_console_scripts_exit_130_on_ctrl_c(monkeypatch, capsys):
@@ -578,16 +593,13 @@ def test_levelled_clouds_publish_in_the_level_frame(model, capsys):
     np.testing.assert_array_equal(got.classes, labels.classes)
 
 
-def test_recording_names_the_topics_as_resolved(model, tmp_path, monkeypatch):
-    # A namespaced node (multi-robot setups) with relative topic names: the bag must name
-    # the topics the clouds really came from (/robot1/points), as `ros2 bag record` does,
-    # not the unresolved "points", so that `indoorbev predict --topic /robot1/points` and
-    # `ros2 bag play` find them.
+@contextlib.contextmanager
+def _publishing(topic: str, monkeypatch):
+    """A live publisher of a scan on ``topic`` every 0.3 s (reliable), for run_detect_node."""
     pytest.importorskip("rclpy", reason="the ros extra is not installed (pip install -e .[ros])")
     from rclpy.signals import SignalHandlerOptions
 
     from indoorbev_jax.ros2 import runtime
-    from indoorbev_jax.ros2.detect import run_detect_node
 
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     monkeypatch.setenv("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
@@ -598,8 +610,7 @@ def test_recording_names_the_topics_as_resolved(model, tmp_path, monkeypatch):
     context = rclpy.Context()
     rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("indoorbev_test_pub", context=context)
-    pub = node.create_publisher(runtime.msg_class(POINTCLOUD2), "/robot1/points",
-                                runtime.qos(True, 5))  # fmt: skip
+    pub = node.create_publisher(runtime.msg_class(POINTCLOUD2), topic, runtime.qos(True, 5))
     stop = threading.Event()
 
     def publish():
@@ -611,19 +622,74 @@ def test_recording_names_the_topics_as_resolved(model, tmp_path, monkeypatch):
     thread = threading.Thread(target=publish, daemon=True)
     thread.start()
     sigterm = signal.getsignal(signal.SIGTERM)
-    bag = tmp_path / "bag"
     try:
-        summary = run_detect_node(str(model[0]), topic="points", out_ns="indoorbev",
-                                  reliable=True, record=str(bag), max_frames=2,
-                                  ros_args=["-r", "__ns:=/robot1"])  # fmt: skip
+        yield
     finally:
         signal.signal(signal.SIGTERM, sigterm)
         stop.set()
         thread.join()
         node.destroy_node()
         context.try_shutdown()
+
+
+def test_recording_names_the_topics_as_resolved(model, tmp_path, monkeypatch):
+    # A namespaced node (multi-robot setups) with relative topic names: the bag must name
+    # the topics the clouds really came from (/robot1/points), as `ros2 bag record` does,
+    # not the unresolved "points", so that `indoorbev predict --topic /robot1/points` and
+    # `ros2 bag play` find them.
+    from indoorbev_jax.ros2.detect import run_detect_node
+
+    bag = tmp_path / "bag"
+    with _publishing("/robot1/points", monkeypatch):
+        summary = run_detect_node(str(model[0]), topic="points", out_ns="indoorbev",
+                                  reliable=True, record=str(bag), max_frames=2,
+                                  ros_args=["-r", "__ns:=/robot1"])  # fmt: skip
     assert summary["processed"] == 2
     assert set(read_bag(bag)) == {"/robot1/points"} | {f"/robot1/indoorbev/{k}" for k in OUTPUTS}
+
+
+def _failing_writer(monkeypatch, after: int):
+    """rosbags' Writer.write raises ENOSPC (a full disk) after ``after`` messages."""
+    from rosbags.rosbag2 import Writer
+
+    write, calls = Writer.write, []
+
+    def full(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) > after:
+            raise OSError(28, "No space left on device")
+        return write(self, *args, **kwargs)
+
+    monkeypatch.setattr(Writer, "write", full)
+
+
+def test_a_failed_recorder_drops_later_messages(tmp_path, monkeypatch):
+    """It queued every later message in memory (55 MiB in 20 s of a 20k-point lidar) and
+    said nothing until close."""
+    _failing_writer(monkeypatch, after=2)
+    raw = _raw_cloud(_scan(20))
+    rec = BagRecorder(tmp_path / "full", {"/a": POINTCLOUD2}, TS)
+    deadline = time.monotonic() + 30
+    while rec.write("/a", 1, raw) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert "No space left on device" in rec.error and rec.counts == {"/a": 2}
+    assert not rec.write("/a", 2, raw) and rec._queue.qsize() == 0  # nothing held
+    with pytest.raises(RuntimeError, match=r"full: recording failed: .*No space left"):
+        rec.close()
+    assert rec.partial.is_dir() and not (tmp_path / "full").exists()
+
+
+def test_detect_goes_on_and_reports_when_its_recording_fails(model, tmp_path, monkeypatch, capsys):
+    from indoorbev_jax.ros2.detect import run_detect_node
+
+    _failing_writer(monkeypatch, after=5)  # fails within the first two clouds
+    with _publishing("/points", monkeypatch), pytest.raises(OSError) as failed:
+        run_detect_node(str(model[0]), topic="/points", reliable=True,
+                        record=str(tmp_path / "bag"), max_frames=3)  # fmt: skip
+    assert "recording failed" in str(failed.value) and "into " in str(failed.value)
+    out = capsys.readouterr().out
+    assert '"processed": 3' in out  # the summary came, after every frame asked for
+    assert (tmp_path / "bag.partial").is_dir() and not (tmp_path / "bag").exists()
 
 
 def test_sim_ctrl_c_while_a_scene_is_generated_exits_cleanly(tmp_path, monkeypatch):
@@ -687,3 +753,22 @@ def test_a_ctrl_c_dropped_during_the_start_up_stops_the_node_from_starting():
                          text=True, timeout=120, env=env)  # fmt: skip
     assert run.returncode == 130, run.stderr
     assert "node started" not in run.stdout and "probe: interrupted" in run.stderr
+
+
+def test_sim_publish_goes_on_and_reports_when_its_recording_fails(tmp_path, monkeypatch, capsys):
+    pytest.importorskip("rclpy", reason="the ros extra is not installed (pip install -e .[ros])")
+    from indoorbev_sim.ros2 import publish
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    domain = os.environ.get("ROS_DOMAIN_ID") or str(1 + os.getpid() % 100)
+    monkeypatch.setenv("ROS_DOMAIN_ID", domain)
+    _failing_writer(monkeypatch, after=3)  # fails on the second frame's cloud
+    sigterm = signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.raises(OSError) as failed:
+            publish(CFG, rate=20.0, frames=4, record=str(tmp_path / "bag"))
+    finally:
+        signal.signal(signal.SIGTERM, sigterm)
+    assert "recording failed" in str(failed.value) and "No space left" in str(failed.value)
+    assert "'frames': 4" in capsys.readouterr().out  # every frame went out, then the summary
+    assert (tmp_path / "bag.partial").is_dir() and not (tmp_path / "bag").exists()

@@ -197,6 +197,21 @@ def pointcloud2_to_points(msg, source: str = "PointCloud2") -> np.ndarray:
         raise BagError(f"{source}: PointCloud2 lacks field(s) {missing}; it has {have}")
     order = ">" if msg.is_bigendian else "<"
     width, height, step = int(msg.width), int(msg.height), int(msg.point_step)
+    name_i = next((c for c in ("intensity", "reflectivity") if c in fields), None)
+    dtypes = {}
+    # Every field read must fit in point_step before the sizes below are trusted: with
+    # point_step 0 the data check needs no bytes, and width x height went unbounded.
+    for name in ("x", "y", "z") + ((name_i,) if name_i else ()):
+        f = fields[name]
+        if f.datatype not in _FIELD_TYPES:
+            raise BagError(f"{source}: field '{name}' has unknown datatype {f.datatype}")
+        dtype = np.dtype(order + _FIELD_TYPES[f.datatype])
+        if f.offset + dtype.itemsize > step:
+            raise BagError(
+                f"{source}: field '{name}' ({dtype.itemsize} bytes at offset {f.offset}) runs "
+                f"past point_step {step}"
+            )
+        dtypes[name] = dtype
     row_bytes = width * step
     if height > 0 and int(msg.row_step) < row_bytes:
         raise BagError(
@@ -222,19 +237,10 @@ def pointcloud2_to_points(msg, source: str = "PointCloud2") -> np.ndarray:
     ).reshape(n, step)
 
     def column(name):
-        f = fields[name]
-        if f.datatype not in _FIELD_TYPES:
-            raise BagError(f"{source}: field '{name}' has unknown datatype {f.datatype}")
-        dtype = np.dtype(order + _FIELD_TYPES[f.datatype])
-        if f.offset + dtype.itemsize > step:
-            raise BagError(
-                f"{source}: field '{name}' ({dtype.itemsize} bytes at offset {f.offset}) runs "
-                f"past point_step {step}"
-            )
-        cols = rows[:, f.offset : f.offset + dtype.itemsize]
+        offset, dtype = fields[name].offset, dtypes[name]
+        cols = rows[:, offset : offset + dtype.itemsize]
         return np.ascontiguousarray(cols).view(dtype).reshape(n).astype(np.float32)
 
-    name_i = next((c for c in ("intensity", "reflectivity") if c in fields), None)
     intensity = column(name_i) if name_i else np.zeros(n, np.float32)
     return np.stack([column("x"), column("y"), column("z"), intensity], axis=1)
 

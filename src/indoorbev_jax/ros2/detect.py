@@ -151,6 +151,8 @@ class Detector:
             points = pointcloud2_to_points(msg, source)
         except BagError as e:
             return self._empty(stamp, frame, str(e))
+        except Exception as e:  # noqa: BLE001 - a layout the checks missed is still bad input
+            return self._empty(stamp, frame, f"{source}: cannot read ({type(e).__name__}: {e})")
         padded, valid, counts = self.predictor.prepare(points)
         notes = []
         if counts["nonfinite_points"]:
@@ -245,12 +247,22 @@ def check_settings(topic: str, out_ns: str, log_every: float, max_frames: int) -
     return out_topics
 
 
-def silence_hint(received: int, publishers: int, topic: str, reliable: bool) -> str | None:
+def silence_hint(
+    received: int, publishers: int, topic: str, reliable: bool, reliable_publishers=None
+) -> str | None:
     """Why no cloud arrived although ``publishers`` publish on ``topic`` (None when some did
-    arrive, or nobody publishes: then there is nothing to explain)."""
+    arrive, or nobody publishes: then there is nothing to explain). ``reliable_publishers``:
+    how many of them offer reliable QoS (None: unknown)."""
     if received or not publishers:
         return None
     hint = f"{topic}: {publishers} publisher(s) but no cloud arrived in {SILENCE_S:g} s; "
+    if reliable and reliable_publishers:
+        # QoS matches: the publisher is idle (a driver starting, a lidar not spinning yet).
+        return (
+            hint
+            + f"{reliable_publishers} of them reliable, so QoS is not the cause: "
+            + ("they have sent nothing yet")
+        )
     if reliable:
         return hint + "--reliable needs a reliable publisher (ros2 topic info -v shows its QoS)"
     return hint + (
@@ -330,6 +342,7 @@ def run_detect_node(
     stats, lock, wake, stop = _Stats(), threading.Lock(), threading.Event(), threading.Event()
     mailbox: list = []  # at most one (raw cloud, receive time ns)
     failure: list[BaseException] = []
+    recording_stopped: list[str] = []  # the recorder's error, once its writer failed
     started = time.monotonic()
 
     def on_cloud(raw: bytes) -> None:
@@ -359,10 +372,13 @@ def run_detect_node(
                     with lock:
                         received = stats.received
                     try:
-                        publishing = node.count_publishers(topic)
+                        infos = node.get_publishers_info_by_topic(bag_names["input"])
+                        publishing = len(infos)
+                        offered = [getattr(i.qos_profile.reliability, "name", "") for i in infos]
+                        reliable_publishers = offered.count("RELIABLE")
                     except Exception:  # noqa: BLE001 - only a hint; never stop the node
-                        publishing = 0
-                    hint = silence_hint(received, publishing, topic, reliable)
+                        publishing, reliable_publishers = 0, None
+                    hint = silence_hint(received, publishing, topic, reliable, reliable_publishers)
                     if hint:
                         log.warning(hint)
                 continue
@@ -377,10 +393,13 @@ def run_detect_node(
                 publishers[k].publish(message)
                 if k == "detections":
                     published = time.time_ns()
-            if recorder is not None:
-                recorder.write(bag_names["input"], result.stamp or received, bytes(raw))
+            if recorder is not None and not recording_stopped:
+                ok = recorder.write(bag_names["input"], result.stamp or received, bytes(raw))
                 for k, message in result.outputs.items():
-                    recorder.write(bag_names[k], result.stamp, message)
+                    ok = ok and recorder.write(bag_names[k], result.stamp, message)
+                if not ok:
+                    recording_stopped.append(recorder.error)
+                    log.error(f"{recorder.error}; detection goes on unrecorded")
             with lock:
                 stats.processed += 1
                 if result.warning is not None:
@@ -442,13 +461,21 @@ def run_detect_node(
             stop.set()
             if worker is not None:
                 worker.join()
+            recording_failed = None
             if recorder is not None:
-                path = recorder.close()
-                print(f"indoorbev ros2 detect: recorded {recorder.counts} into {path}",
-                      flush=True)  # fmt: skip
+                try:
+                    path = recorder.close()
+                    print(f"indoorbev ros2 detect: recorded {recorder.counts} into {path}",
+                          flush=True)  # fmt: skip
+                except RuntimeError as e:  # the node still stops and reports
+                    recording_failed = (
+                        f"{e}; {recorder.counts} messages were written, into {recorder.partial}"
+                    )
             runtime.stop_node(node, context)
     if failure:
         raise RuntimeError("the inference worker failed") from failure[0]
     summary = stats.summary()
     print("indoorbev ros2 detect: summary " + json.dumps(summary), flush=True)
+    if recording_failed:
+        raise OSError(recording_failed)
     return summary

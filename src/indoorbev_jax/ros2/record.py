@@ -91,14 +91,30 @@ class BagRecorder:
         if self._error is not None:
             raise RuntimeError(f"{self.path}: recording failed: {self._error}") from self._error
 
-    def write(self, topic: str, stamp: int, raw: bytes) -> None:
-        """Queues one serialized message, logged at ``stamp`` (ns)."""
+    @property
+    def error(self) -> str | None:
+        """Why the recording stopped (its writer failed: a full disk, say), else None."""
+        return None if self._error is None else f"{self.path}: recording failed: {self._error}"
+
+    @property
+    def partial(self) -> Path:
+        """The folder the bag is written in until ``close`` moves it (kept when it fails)."""
+        return self._partial
+
+    def write(self, topic: str, stamp: int, raw: bytes) -> bool:
+        """Queues one serialized message, logged at ``stamp`` (ns). Returns False, dropping
+        the message, once the writer has failed (``error``): nothing more is queued, so a
+        node that goes on runs in bounded memory (it held every later message before)."""
         if topic not in self.counts:
             raise KeyError(f"{topic}: not one of the recorded topics {sorted(self.counts)}")
+        if self._error is not None:
+            return False
         self._queue.put((topic, stamp, bytes(raw)))
+        return True
 
     def close(self) -> Path:
-        """Writes what is queued, finishes the bag and moves it under its final name."""
+        """Writes what is queued, finishes the bag and moves it under its final name; a
+        ``RuntimeError`` when the writer failed (what it wrote stays in ``partial``)."""
         if not self._closed:
             self._closed = True
             self._queue.put(None)
