@@ -161,7 +161,7 @@ def test_predict_kitti_then_bag_round_trip(model_file, tmp_path, capsys):
 
 
 def test_bad_input_is_named(model_file, tmp_path):
-    with pytest.raises(ValueError, match="expected a .bin file, a KITTI-style folder"):
+    with pytest.raises(ValueError, match=r"expected a \.bin, \.pcd or \.npy file, a folder"):
         P.predict(model_file, tmp_path, tmp_path / "o", verbose=False)
     (tmp_path / "x.bin").write_bytes(b"\0" * 10)
     with pytest.raises(kitti.DatasetError, match=r"x\.bin: size 10 bytes"):

@@ -348,9 +348,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_eval_command(commands)
 
-    pred = commands.add_parser("predict", help="run a trained model on .bin, KITTI or bag input")
+    pred = commands.add_parser(
+        "predict", help="run a trained model on .bin/.pcd/.npy, KITTI or bag input"
+    )
     pred.add_argument("model", help="run directory or exported model file (.msgpack)")
-    pred.add_argument("input", help=".bin file, KITTI-style folder or ROS 2 bag folder")
+    pred.add_argument(
+        "input",
+        help=".bin, .pcd or .npy file, a folder of them, KITTI-style folder or ROS 2 bag folder",
+    )
     pred.add_argument("--out", required=True, help="output folder (label_2, mask_2, pictures)")
     pred.add_argument(
         "--topic", default=None, help="cloud topic of a bag (PointCloud2 or Livox CustomMsg)"

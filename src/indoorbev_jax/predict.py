@@ -2,8 +2,9 @@
 
 MODEL is a run directory (``config.json`` + orbax checkpoints; the best checkpoint is
 used) or a model file written by ``export_model`` (one msgpack file holding the config and
-the parameters, what ``make demo`` ships). INPUT is a ``.bin`` file, a KITTI-style folder
-(``velodyne/``) or a ROS 2 bag folder holding sensor_msgs/PointCloud2 of any field layout
+the parameters, what ``make demo`` ships). INPUT is a ``.bin``, ``.pcd`` (PCL, ascii or
+binary) or ``.npy`` file, a folder of them, a KITTI-style folder (``velodyne/``) or a ROS 2
+bag folder holding sensor_msgs/PointCloud2 of any field layout
 with x, y, z and optional intensity, or Livox's livox_ros_driver2/CustomMsg.
 
 Per frame, DIR receives ``label_2/<id>.txt`` (KITTI lines with a 16th score field, one per
@@ -34,6 +35,8 @@ from indoorbev_jax import viz
 from indoorbev_jax.boxes import check_box_source, segment_boxes
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data import kitti
+from indoorbev_jax.data.clouds import SUFFIXES as CLOUD_SUFFIXES
+from indoorbev_jax.data.clouds import read_cloud
 from indoorbev_jax.data.dataset import pad_points
 from indoorbev_jax.geometry import in_workspace, wrap_angle
 from indoorbev_jax.inference import apply_views, panoptic_inference, unview_cells
@@ -219,7 +222,7 @@ def average_models(
 class Frame:
     """One input scan: ``points`` float32 [N, 4], or ``error`` when it cannot be read."""
 
-    frame_id: str  # output file stem: the .bin's stem, or the bag message's index
+    frame_id: str  # output file stem: the cloud file's stem, or the bag message's index
     points: np.ndarray | None
     log_ns: int | None = None  # a bag's record time
     stamp_ns: int | None = None  # a bag message's header stamp
@@ -227,12 +230,27 @@ class Frame:
     error: Exception | None = None
 
 
-def _bin_frames(paths: list[Path]) -> Iterator[Frame]:
+def _file_frames(paths: list[Path]) -> Iterator[Frame]:
     for path in paths:
         try:
-            yield Frame(path.stem, kitti.read_points(path))
+            yield Frame(path.stem, read_cloud(path))
         except (kitti.DatasetError, OSError) as e:
             yield Frame(path.stem, None, error=e)
+
+
+def _cloud_files(folder: Path) -> list[Path]:
+    """The ``.bin`` / ``.pcd`` / ``.npy`` files of a folder, by name; two of one stem would
+    write the same outputs, so they are refused."""
+    files = sorted(
+        p for p in folder.iterdir()
+        if p.is_file() and p.suffix.lower() in CLOUD_SUFFIXES and not kitti.is_hidden(p)
+    )  # fmt: skip
+    stems: dict[str, Path] = {}
+    for p in files:
+        if p.stem in stems:
+            raise ValueError(f"{stems[p.stem]} and {p.name}: two clouds named {p.stem!r}")
+        stems[p.stem] = p
+    return files
 
 
 def _bag_frames(path: Path, topic: str | None) -> Iterator[Frame]:
@@ -248,8 +266,9 @@ def _is_bag_folder(path: Path) -> bool:
 
 
 def open_input(path: str | os.PathLike, topic: str | None = None) -> tuple[int, Iterator[Frame]]:
-    """(number of frames, an iterator of ``Frame``) over INPUT: a ``.bin`` file, a
-    KITTI-style folder (``velodyne/*.bin``) or a ROS 2 bag folder. A frame that cannot be read
+    """(number of frames, an iterator of ``Frame``) over INPUT: a ``.bin``, ``.pcd`` or
+    ``.npy`` file (``data.clouds``), a folder of them (frames in name order), a KITTI-style
+    folder (``velodyne/*.bin``) or a ROS 2 bag folder. A frame that cannot be read
     comes with its ``error`` set, so that a caller may skip it; a bad INPUT path raises.
     A bag's ``.db3`` / ``.mcap`` file is read on its own when no ``metadata.yaml`` lies beside
     it (a Foxglove recording, a recovered killed one)."""
@@ -261,20 +280,23 @@ def open_input(path: str | os.PathLike, topic: str | None = None) -> tuple[int, 
     is_bag = storage_file or _is_bag_folder(path)
     if topic is not None and path.exists() and not is_bag:
         raise ValueError(f"{path}: --topic {topic} applies to ROS 2 bag input only")
-    if path.is_file() and path.suffix.lower() == ".bin":
-        return 1, _bin_frames([path])
+    if path.is_file() and path.suffix.lower() in CLOUD_SUFFIXES:
+        return 1, _file_frames([path])
     if (path / "velodyne").is_dir():
         bins = sorted(p for p in (path / "velodyne").glob("*.bin") if not kitti.is_hidden(p))
-        return len(bins), _bin_frames(bins)
+        return len(bins), _file_frames(bins)
     if is_bag:
         from indoorbev_jax.rosbag import count_clouds
 
         return count_clouds(path, topic), _bag_frames(path, topic)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
+    files = _cloud_files(path) if path.is_dir() else []
+    if files:
+        return len(files), _file_frames(files)
     raise ValueError(
-        f"{path}: expected a .bin file, a KITTI-style folder with velodyne/, or a "
-        f"ROS 2 bag folder with metadata.yaml"
+        f"{path}: expected a .bin, .pcd or .npy file, a folder of them, a KITTI-style folder "
+        "with velodyne/, or a ROS 2 bag folder with metadata.yaml"
     )
 
 

@@ -1,0 +1,185 @@
+"""Point-cloud files other than KITTI ``.bin``: PCL's ``.pcd`` and numpy's ``.npy``.
+
+Both read to float32 [N, 4] = (x, y, z, intensity) in the lidar frame, as
+``kitti.read_points`` does; a cloud without an intensity field reads intensity 0. Every
+malformed file is a ``kitti.DatasetError`` naming the file (and the header line or field).
+
+``.pcd`` (PCL's format, versions 0.5-0.7): ``DATA ascii`` or ``binary``, any field order,
+extra fields (``ring``, ``time``, normals, ``_`` padding), ``COUNT`` > 1, any ``TYPE``/
+``SIZE`` PCL writes; intensity from ``intensity``, ``reflectivity`` or ``i``. Organised
+clouds (HEIGHT > 1) read row by row with their NaN points. ``binary_compressed`` (LZF) is
+refused with the command that converts it.
+
+``.npy``: a float or integer array [N, 3] or [N, 4+] (x, y, z[, intensity, ...]), or a
+structured array with fields x, y, z (and intensity).
+
+Example::
+
+    from indoorbev_jax.data.clouds import read_cloud
+
+    points = read_cloud("scan.pcd")  # float32 [N, 4]
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+from indoorbev_jax.data.kitti import DatasetError, read_points
+
+SUFFIXES = (".bin", ".pcd", ".npy")
+INTENSITY_NAMES = ("intensity", "reflectivity", "i")
+# PCD TYPE letter and SIZE -> numpy kind.
+_PCD_KINDS = {"F": "f", "I": "i", "U": "u"}
+_PCD_HEADER = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT",
+               "POINTS", "DATA")  # fmt: skip
+
+
+def read_cloud(path: str | os.PathLike) -> np.ndarray:
+    """float32 [N, 4] (x, y, z, intensity) from a ``.bin``, ``.pcd`` or ``.npy`` file."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".bin":
+        return read_points(path)
+    if suffix == ".pcd":
+        return read_pcd(path)
+    if suffix == ".npy":
+        return read_npy(path)
+    raise DatasetError(f"{path}: expected a {', '.join(SUFFIXES)} point cloud file")
+
+
+def _columns(path: Path, names: list[str], get) -> np.ndarray:
+    """Stacks x, y, z and the first intensity-like field (0 when none) as float32 [N, 4]."""
+    missing = [n for n in "xyz" if n not in names]
+    if missing:
+        raise DatasetError(f"{path}: no field(s) {missing} (x, y, z needed); it has {names}")
+    xyz = [np.asarray(get(n), np.float32) for n in "xyz"]
+    name_i = next((n for n in INTENSITY_NAMES if n in names), None)
+    intensity = np.asarray(get(name_i), np.float32) if name_i else np.zeros_like(xyz[0])
+    return np.stack([*xyz, intensity], axis=1)
+
+
+def read_npy(path: str | os.PathLike) -> np.ndarray:
+    """float32 [N, 4] from a ``.npy`` array (see the module docstring)."""
+    path = Path(path)
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:
+        raise DatasetError(f"{path}: not a readable .npy array ({e})") from e
+    if arr.dtype.names:  # structured: fields by name
+        return _columns(path, list(arr.dtype.names), lambda n: arr[n].reshape(-1))
+    if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] < 3:
+        raise DatasetError(
+            f"{path}: expected a numeric array [N, 3] or [N, 4+] (x, y, z[, intensity]), "
+            f"got {arr.dtype} {list(arr.shape)}"
+        )
+    out = np.zeros((arr.shape[0], 4), np.float32)
+    out[:, : min(4, arr.shape[1])] = arr[:, :4]
+    return out
+
+
+def _parse_pcd_header(path: Path, data: bytes) -> tuple[dict[str, list[str]], int]:
+    """({keyword: values}, byte offset of the point data) of a PCD file's header."""
+    header: dict[str, list[str]] = {}
+    pos = 0
+    for lineno in range(1, 64):
+        end = data.find(b"\n", pos)
+        if end < 0:
+            raise DatasetError(f"{path}:{lineno}: the header ends without a DATA line")
+        try:
+            line = data[pos:end].decode("ascii").strip()
+        except UnicodeDecodeError as e:
+            raise DatasetError(f"{path}:{lineno}: not a PCD header line ({e})") from e
+        pos = end + 1
+        if not line or line.startswith("#"):
+            continue
+        key, *values = line.split()
+        if key.upper() not in _PCD_HEADER:
+            raise DatasetError(
+                f"{path}:{lineno}: unknown PCD header keyword {key!r} (expected one of "
+                f"{', '.join(_PCD_HEADER)})"
+            )
+        header[key.upper()] = values
+        if key.upper() == "DATA":
+            return header, pos
+    raise DatasetError(f"{path}: no DATA line in the first 64 lines: not a PCD file?")
+
+
+def read_pcd(path: str | os.PathLike) -> np.ndarray:
+    """float32 [N, 4] from a PCL ``.pcd`` file (see the module docstring)."""
+    path = Path(path)
+    data = path.read_bytes()
+    header, offset = _parse_pcd_header(path, data)
+    for key in ("FIELDS", "SIZE", "TYPE", "DATA"):
+        if key not in header:
+            raise DatasetError(f"{path}: the PCD header has no {key} line")
+    fields = header["FIELDS"]
+    sizes, types = header["SIZE"], header["TYPE"]
+    counts = header.get("COUNT", ["1"] * len(fields))
+    if not len(fields) == len(sizes) == len(types) == len(counts):
+        raise DatasetError(
+            f"{path}: FIELDS, SIZE, TYPE and COUNT list {len(fields)}, {len(sizes)}, "
+            f"{len(types)} and {len(counts)} values; they must match"
+        )
+    try:
+        width = int(header.get("WIDTH", ["0"])[0])
+        height = int(header.get("HEIGHT", ["1"])[0])
+        n = int(header["POINTS"][0]) if "POINTS" in header else width * height
+        counts = [int(c) for c in counts]
+    except ValueError as e:
+        raise DatasetError(f"{path}: WIDTH, HEIGHT, POINTS and COUNT must be integers ({e})") from e
+    dtype = []
+    for k, (name, size, kind, count) in enumerate(zip(fields, sizes, types, counts, strict=True)):
+        letter = _PCD_KINDS.get(kind.upper())
+        sizes_ok = ("4", "8") if letter == "f" else ("1", "2", "4", "8")
+        if letter is None or size not in sizes_ok:
+            raise DatasetError(f"{path}: field {name!r} has TYPE {kind} SIZE {size}, unknown")
+        # PCL names padding "_", maybe several times: numpy needs distinct names.
+        unique = name if name != "_" else f"_pad{k}"
+        dtype.append((unique, f"<{letter}{size}", (count,) if count > 1 else ()))
+    try:
+        dtype = np.dtype(dtype)
+    except ValueError as e:  # a field named twice, say
+        raise DatasetError(f"{path}: FIELDS {' '.join(fields)}: {e}") from e
+    names = [f for f in fields if f != "_"]
+    kind = header["DATA"][0].lower() if header["DATA"] else ""
+    if kind == "binary":
+        need = n * dtype.itemsize
+        if len(data) - offset < need:
+            raise DatasetError(
+                f"{path}: DATA binary holds {len(data) - offset} bytes, expected POINTS {n} x "
+                f"{dtype.itemsize} bytes = {need}"
+            )
+        points = np.frombuffer(data, dtype, count=n, offset=offset)
+        return _columns(path, names, lambda f: points[f].reshape(n, -1)[:, 0])
+    if kind == "ascii":
+        return _read_pcd_ascii(path, data[offset:], dtype, names, n)
+    if kind == "binary_compressed":
+        raise DatasetError(
+            f"{path}: DATA binary_compressed (LZF) is not read; convert it once with PCL, "
+            "`pcl_convert_pcd_ascii_binary IN.pcd OUT.pcd 1` (binary)"
+        )
+    raise DatasetError(f"{path}: DATA {' '.join(header['DATA'])!r}: expected ascii or binary")
+
+
+def _read_pcd_ascii(path: Path, text: bytes, dtype: np.dtype, names: list[str], n: int):
+    width = sum(int(np.prod(dtype[f].shape, dtype=int)) for f in dtype.names)
+    try:
+        values = np.loadtxt(io.BytesIO(text), dtype=np.float64, ndmin=2)
+    except ValueError as e:  # numpy names the row: "the number of columns changed ... row 5"
+        raise DatasetError(f"{path}: DATA ascii: {e}") from e
+    if values.size == 0:
+        values = values.reshape(0, width)
+    if values.shape != (n, width):
+        raise DatasetError(
+            f"{path}: DATA ascii holds {values.shape[0]} points of {values.shape[1]} values, "
+            f"expected POINTS {n} of {width} (FIELDS x COUNT)"
+        )
+    column, start = {}, 0
+    for f in dtype.names:
+        column[f] = start
+        start += int(np.prod(dtype[f].shape, dtype=int))
+    return _columns(path, names, lambda f: values[:, column[f]])

@@ -1,0 +1,152 @@
+"""PCL .pcd and numpy .npy clouds read as KITTI .bin points: known values, bad files named."""
+
+import numpy as np
+import pytest
+
+from indoorbev_jax import predict as P
+from indoorbev_jax.data import clouds, kitti
+
+RNG = np.random.default_rng(0)
+POINTS = np.c_[RNG.uniform(-5, 5, (50, 3)), RNG.uniform(0, 255, 50)].astype(np.float32)
+
+
+def _header(fields, sizes, types, counts, n, data, height=1, version="0.7"):
+    return (
+        f"# .PCD v{version} - Point Cloud Data file format\nVERSION {version}\n"
+        f"FIELDS {' '.join(fields)}\nSIZE {' '.join(map(str, sizes))}\n"
+        f"TYPE {' '.join(types)}\nCOUNT {' '.join(map(str, counts))}\n"
+        f"WIDTH {n // height}\nHEIGHT {height}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n"
+        f"DATA {data}\n"
+    ).encode()
+
+
+# What drivers write: extra fields before and after, padding, float64 time, uint16 ring,
+# a 3-vector (COUNT 3), intensity as float or as uint8 reflectivity.
+LAYOUT = [  # (name, numpy type, PCD SIZE, TYPE, COUNT)
+    ("normal", "<f4", 4, "F", 3),
+    ("x", "<f4", 4, "F", 1),
+    ("y", "<f4", 4, "F", 1),
+    ("_", "u1", 1, "U", 1),
+    ("z", "<f4", 4, "F", 1),
+    ("intensity", "<f4", 4, "F", 1),
+    ("ring", "<u2", 2, "U", 1),
+    ("time", "<f8", 8, "F", 1),
+]
+
+
+def _structured(points, layout=LAYOUT):
+    dtype = [(n if n != "_" else "pad", t, (c,) if c > 1 else ()) for n, t, _, _, c in layout]
+    out = np.zeros(len(points), dtype)
+    for k, name in enumerate("xyz"):
+        out[name] = points[:, k]
+    if any(n == "intensity" for n, *_ in layout):
+        out["intensity"] = points[:, 3]
+    if any(n == "ring" for n, *_ in layout):
+        out["ring"] = np.arange(len(points)) % 16
+        out["time"] = np.arange(len(points)) * 1e-5
+        out["normal"] = 1.0
+    return out
+
+
+def _write_pcd(path, points, data="binary", layout=LAYOUT, height=1):
+    s = _structured(points, layout)
+    names, _, sizes, types, counts = zip(*layout, strict=True)
+    header = _header(names, sizes, types, counts, len(points), data, height)
+    if data == "binary":
+        path.write_bytes(header + s.tobytes())
+    else:
+        columns = [np.asarray(s[n], np.float64).reshape(len(s), -1) for n in s.dtype.names]
+        table = np.concatenate(columns, axis=1).tolist()  # float32 values, exact in repr
+        path.write_bytes(header + "".join(" ".join(map(repr, r)) + "\n" for r in table).encode())
+
+
+@pytest.mark.parametrize("data", ["binary", "ascii"])
+def test_pcd_reads_the_points_of_any_field_layout(tmp_path, data):
+    _write_pcd(tmp_path / "a.pcd", POINTS, data)
+    np.testing.assert_array_equal(clouds.read_cloud(tmp_path / "a.pcd"), POINTS)
+    # An organised cloud (2 rows) with NaN points, as a driver writes one.
+    organised = POINTS.copy()
+    organised[::7, :3] = np.nan
+    _write_pcd(tmp_path / "o.pcd", organised, data, height=2)
+    np.testing.assert_array_equal(clouds.read_pcd(tmp_path / "o.pcd"), organised)
+
+
+def test_pcd_intensity_names_and_no_intensity(tmp_path):
+    xyz = [("x", "<f4", 4, "F", 1), ("y", "<f4", 4, "F", 1), ("z", "<f4", 4, "F", 1)]
+    _write_pcd(tmp_path / "xyz.pcd", POINTS, layout=xyz)
+    expected = POINTS.copy()
+    expected[:, 3] = 0
+    np.testing.assert_array_equal(clouds.read_pcd(tmp_path / "xyz.pcd"), expected)
+    refl = np.zeros(len(POINTS), [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1")])
+    for k, n in enumerate("xyz"):
+        refl[n] = POINTS[:, k]
+    refl["r"] = np.round(POINTS[:, 3])
+    header = _header(["x", "y", "z", "reflectivity"], [4, 4, 4, 1], "FFFU", [1] * 4, 50, "binary")
+    (tmp_path / "r.pcd").write_bytes(header + refl.tobytes())
+    got = clouds.read_pcd(tmp_path / "r.pcd")
+    np.testing.assert_array_equal(got[:, 3], np.round(POINTS[:, 3]))
+
+
+def test_bad_pcd_files_are_named(tmp_path):
+    path = tmp_path / "b.pcd"
+    _write_pcd(path, POINTS)
+    good = path.read_bytes()
+    cases = [
+        (good.replace(b"DATA binary", b"DATA binary_compressed"),
+         r"b\.pcd: DATA binary_compressed \(LZF\) is not read; convert it .*pcl_convert"),
+        (good[:-10], r"b\.pcd: DATA binary holds \d+ bytes, expected POINTS 50 x 39 bytes = 1950"),
+        (good.replace(b"FIELDS normal x y _ z", b"FIELDS normal x y _ h"),
+         r"b\.pcd: no field\(s\) \['z'\]"),
+        (good.replace(b"VIEWPOINT", b"VIEWPINT"), r"b\.pcd:9: unknown PCD header keyword"),
+        (good.replace(b"TYPE F F F U", b"TYPE F F F Q"), r"field '_' has TYPE Q SIZE 1"),
+        (b"\x89PNG\r\n" + good[:100], r"b\.pcd:1: not a PCD header line|unknown PCD header"),
+    ]  # fmt: skip
+    for content, message in cases:
+        path.write_bytes(content)
+        with pytest.raises(kitti.DatasetError, match=message):
+            clouds.read_pcd(path)
+    _write_pcd(path, POINTS, "ascii")
+    lines = path.read_bytes().splitlines(keepends=True)
+    lines[14] = b"1 2 3\n"  # point line 4 cut short
+    path.write_bytes(b"".join(lines))
+    with pytest.raises(kitti.DatasetError, match=r"b\.pcd: DATA ascii: .*column"):
+        clouds.read_pcd(path)
+
+
+def test_npy_arrays_and_structured_arrays(tmp_path):
+    np.save(tmp_path / "a.npy", POINTS.astype(np.float64))
+    np.testing.assert_array_equal(clouds.read_cloud(tmp_path / "a.npy"), POINTS)
+    np.save(tmp_path / "b.npy", POINTS[:, :3])
+    expected = POINTS.copy()
+    expected[:, 3] = 0
+    np.testing.assert_array_equal(clouds.read_cloud(tmp_path / "b.npy"), expected)
+    np.save(tmp_path / "c.npy", np.c_[POINTS, np.ones(50)])  # a 5th column (ring) is left
+    np.testing.assert_array_equal(clouds.read_cloud(tmp_path / "c.npy"), POINTS)
+    np.save(tmp_path / "d.npy", _structured(POINTS))
+    np.testing.assert_array_equal(clouds.read_cloud(tmp_path / "d.npy"), POINTS)
+    for name, arr, message in [
+        ("e", POINTS[:, :2], r"e\.npy: expected a numeric array \[N, 3\] or \[N, 4\+\]"),
+        ("f", np.array(["a", "b"]), r"f\.npy: expected a numeric array"),
+        ("g", np.array([{"x": 1}], object), r"g\.npy: not a readable \.npy array"),
+    ]:
+        np.save(tmp_path / f"{name}.npy", arr, allow_pickle=True)
+        with pytest.raises(kitti.DatasetError, match=message):
+            clouds.read_cloud(tmp_path / f"{name}.npy")
+
+
+def test_predict_input_reads_pcd_and_npy_files_and_folders(tmp_path):
+    (tmp_path / "scans").mkdir()
+    _write_pcd(tmp_path / "scans" / "000001.pcd", POINTS)
+    np.save(tmp_path / "scans" / "000000.npy", POINTS)
+    kitti.write_points(tmp_path / "scans" / "000002.bin", POINTS)
+    (tmp_path / "scans" / "notes.txt").write_text("not a cloud")
+    count, frames = P.open_input(tmp_path / "scans")
+    frames = list(frames)
+    assert count == 3 and [f.frame_id for f in frames] == ["000000", "000001", "000002"]
+    for f in frames:
+        np.testing.assert_array_equal(f.points, POINTS)
+    count, frames = P.open_input(tmp_path / "scans" / "000001.pcd")
+    assert count == 1 and next(frames).frame_id == "000001"
+    np.save(tmp_path / "scans" / "000001.npy", POINTS)  # two clouds would write one output
+    with pytest.raises(ValueError, match=r"000001\.npy and 000001\.pcd: two clouds named"):
+        P.open_input(tmp_path / "scans")
