@@ -24,6 +24,13 @@ PANELS = (
 def read_log(run: Path) -> dict[str, list[dict]]:
     """{"train": [...], "eval": [...]} lines of ``run/metrics.jsonl``."""
     path = run / "metrics.jsonl"
+    if not path.is_file():
+        sweep = (
+            " (a sweep's workdir: its losses are in sweep.jsonl)"
+            if (run / "sweep.jsonl").exists()
+            else ""
+        )
+        raise SystemExit(f"{path}: no such file: not a training run's workdir{sweep}")
     out: dict[str, list[dict]] = {"train": [], "eval": []}
     for n, line in enumerate(path.read_text().splitlines(), 1):
         try:
@@ -32,6 +39,13 @@ def read_log(run: Path) -> dict[str, list[dict]]:
             raise SystemExit(f"{path}:{n}: not a JSON line ({e})") from None
         out.setdefault(row.get("kind", "train"), []).append(row)
     return out
+
+
+def run_labels(runs: list[Path]) -> list[str]:
+    """A legend label per run: its folder's name, or its path where names repeat (two
+    runs/small under different parents merged into one line before)."""
+    names = [run.resolve().name for run in runs]
+    return [str(run) if names.count(n) > 1 else n for n, run in zip(names, runs, strict=True)]
 
 
 def main(argv=None) -> None:
@@ -44,7 +58,7 @@ def main(argv=None) -> None:
     p.add_argument("runs", nargs="+", type=Path)
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
-    logs = {run.name: read_log(run) for run in args.runs}
+    logs = {name: read_log(run) for name, run in zip(run_labels(args.runs), args.runs, strict=True)}
     fig, axes = plt.subplots(1, len(PANELS), figsize=(4 * len(PANELS), 3.2))
     for ax, (kind, key, title) in zip(axes, PANELS, strict=True):
         for name, log in logs.items():

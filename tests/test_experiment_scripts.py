@@ -521,3 +521,14 @@ def test_eval_sim_simulates_the_mount_it_is_given(tmp_path, monkeypatch):
         with pytest.raises(KeyboardInterrupt):
             eval_sim.main(["--model", model, "--frames", "2", "--batch", "2", *flags])
         assert simulated.pop() == expected, flags
+
+
+def test_plot_curves_labels_runs_of_one_name_by_their_paths(tmp_path):
+    """Two runs named small (a/small, b/small) were one line: the first was dropped."""
+    plot = _script("plot_curves")
+    runs = [tmp_path / "a" / "small", tmp_path / "b" / "small", tmp_path / "tiny"]
+    assert plot.run_labels(runs) == [str(runs[0]), str(runs[1]), "tiny"]
+    (tmp_path / "sw").mkdir()
+    (tmp_path / "sw" / "sweep.jsonl").write_text("")
+    with pytest.raises(SystemExit, match=r"sw/metrics\.jsonl: no such file: .*a sweep's workdir"):
+        plot.read_log(tmp_path / "sw")

@@ -4,6 +4,7 @@ single-device, checkpoints fall back past a corrupt one, and kill -9 + rerun is 
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import re
 import shutil
@@ -862,3 +863,83 @@ def test_an_empty_object_database_is_named(data):
     empty = batch.replace(targets=batch.targets.replace(valid=batch.targets.valid & False))
     with pytest.raises(ValueError, match="augment.gt_sampling: the first 2 training batches"):
         T.gt_database(lambda i: empty, 2, CFG.grid)
+
+
+def test_sweep_window_means_leave_out_skipped_steps(data, tmp_path, monkeypatch):
+    """A skipped (non-finite) step blanked its member's whole window; the mean is now that
+    of the finite steps, and null only when none was finite."""
+    from indoorbev_jax import sweep
+
+    calls = []
+
+    def fake_step(states, batch, key, hypers):
+        calls.append(None)
+        s = len(calls)
+        loss = jnp.array([float(s), np.nan if s == 2 else 10.0 * s, np.nan])
+        return states, {"loss": loss}
+
+    monkeypatch.setattr(sweep, "make_sweep_step", lambda c, database=None: fake_step)
+    t = dataclasses.replace(CFG.train, total_steps=3, log_every=3, augment=False)
+    cfg = dataclasses.replace(CFG, train=t)
+    sweep.run_sweep(cfg, tmp_path, stack_hypers(cfg, [1e-3, 2e-3, 3e-3], {}), data, progress=False)
+    (record,) = [json.loads(x) for x in (tmp_path / "sweep.jsonl").read_text().splitlines()]
+    assert record["loss"] == [2.0, 20.0, None]  # (1+2+3)/3, (10+30)/2, no finite step
+
+
+def test_train_log_means_leave_out_skipped_steps():
+    window = {"loss": np.array([1.0, np.nan, 3.0, np.inf]), "skipped_steps": np.array([0, 1, 1, 1])}
+    assert T._scalars(window) == {"loss": 2.0, "skipped_steps": 0.75}
+    assert math.isnan(T._scalars({"loss": np.array([np.nan, np.nan])})["loss"])
+
+
+@pytest.mark.parametrize("values, flag", [
+    (([1e-3, float("nan")], {}), r"--learning-rates: value 2 is nan"),
+    (([-1e-3, 1e-3], {}), r"--learning-rates: value 1 is -0\.001"),
+    (([1e-3, 1e-3], {"dice": [5.0, float("inf")]}), r"--dice-weights: value 2 is inf"),
+])  # fmt: skip
+def test_sweep_refuses_values_the_config_would(values, flag):
+    with pytest.raises(ValueError, match=f"{flag}; expected finite and >= 0"):
+        stack_hypers(CFG, *values)
+
+
+def test_train_and_sweep_refuse_each_others_workdir(data, tmp_path):
+    """With the same config and data the resume checks passed, and the first checkpoint
+    save deleted the other run's checkpoints as 'unreadable'."""
+    from indoorbev_jax import sweep
+
+    swept, trained = tmp_path / "sweep", tmp_path / "train"
+    swept.mkdir()
+    (swept / "hypers.json").write_text("{}\n")
+    with pytest.raises(ValueError, match=r"sweep: holds a sweep \(it has hypers\.json\); train in"):
+        T.train_and_evaluate(CFG, swept, data=str(data), progress=False)
+    trained.mkdir()
+    (trained / "run.json").write_text(json.dumps(T.run_record(None)) + "\n")
+    hypers = stack_hypers(CFG, [1e-3], {})
+    with pytest.raises(ValueError, match=r"holds a training run \(run\.json says 'train'\); sweep"):
+        sweep.run_sweep(CFG, trained, hypers, None, progress=False)
+
+
+def test_a_checkpoint_of_another_layout_is_refused_not_deleted(tmp_path):
+    """A sweep's K stacked states read as 'unreadable' by a training run, which then
+    deleted them; now the restore names the step and leaves it."""
+    one = T.TrainState(
+        step=jnp.int32(0), params={"w": jnp.arange(4.0)}, opt_state=(), skipped=jnp.int32(0)
+    )
+    stacked = jax.tree.map(lambda x: jnp.stack([x, x]), one)
+    ckpt = T.Checkpoints(tmp_path, keep=3, metric=None)
+    ckpt.save(stacked, 2)
+    ckpt.close()
+    ckpt = T.Checkpoints(tmp_path, keep=3, metric=None)
+    with pytest.raises(ValueError, match=r"checkpoints/2: holds 3 arrays, this run's state has 3"):
+        ckpt.restore(one)
+    assert ckpt.latest.all_steps() == [2] and int(ckpt.restore(stacked).step[0]) == 0
+    ckpt.close()
+
+
+def test_each_process_trains_on_its_rows_of_the_global_batch():
+    batch = {"points": np.arange(8 * 3).reshape(8, 3), "ids": np.arange(8)}
+    parts = [T.process_rows(batch, i, 4) for i in range(4)]
+    np.testing.assert_array_equal(np.concatenate([p["ids"] for p in parts]), np.arange(8))
+    assert T.process_rows(batch) is batch  # one process: the whole batch
+    with pytest.raises(ValueError, match="train.batch_size=8 does not split over 3 processes"):
+        T.process_rows(batch, 0, 3)

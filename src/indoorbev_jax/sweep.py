@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import time
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from indoorbev_jax.train import (
     Hyper,
     TrainState,
     check_resume,
+    check_run_kind,
     gt_database,
     init_state,
     jit_train_step,
@@ -43,6 +45,16 @@ def stack_hypers(config: Config, learning_rates, weight_overrides: dict[str, lis
     """K ``Hyper`` stacked on a leading axis; weights not overridden come from the config."""
     base = Hyper.from_config(config)
     k = len(learning_rates)
+    # Config's rule for each value (a NaN learning rate wrote NaN parameters; NaN in
+    # hypers.json is no JSON, and NaN != NaN refused every resume).
+    for flag, values in [("learning-rates", learning_rates)] + [
+        (f"{name}-weights", v) for name, v in weight_overrides.items() if v is not None
+    ]:
+        bad = next(((i, v) for i, v in enumerate(values) if not (0 <= v < math.inf)), None)
+        if bad is not None:
+            raise ValueError(
+                f"--{flag}: value {bad[0] + 1} is {bad[1]!r}; expected finite and >= 0"
+            )
     unknown = sorted(set(weight_overrides) - set(base.weights))
     if unknown:
         extra = " (the seed weight needs the seed head)" if "seed" in unknown else ""
@@ -114,6 +126,7 @@ def run_sweep(
     hypers_path = workdir / "hypers.json"
     data_source = None if data is None else str(Path(data).resolve())
     settings = hypers_to_json(hypers)
+    check_run_kind(workdir, "sweep")
     if config_path.exists():
         check_resume(config_path, run_path, config, data_source)
     if hypers_path.exists() and json.loads(hypers_path.read_text()) != settings:
@@ -132,7 +145,7 @@ def run_sweep(
     if log_path.exists():
         truncate_log(log_path, start)
     # Written once every check has passed, as train_and_evaluate does.
-    write_text_atomic(run_path, json.dumps(run_record(data_source)) + "\n")
+    write_text_atomic(run_path, json.dumps(run_record(data_source, "sweep")) + "\n")
     write_text_atomic(config_path, config.to_json())
     write_text_atomic(hypers_path, json.dumps(settings) + "\n")
     database = None
@@ -140,20 +153,26 @@ def run_sweep(
         database = gt_database(source, GT_DATABASE_BATCHES, config.grid)
     step = make_sweep_step(config, database)
     step_key = jax.random.fold_in(key, KEY_STEPS)
-    loss_sum, window = jnp.zeros(k), 0
+    # Per member: the sum and count of its finite losses (a skipped step's NaN left the
+    # window's mean NaN) and the steps of the window.
+    loss_sum, finite, window = jnp.zeros(k), jnp.zeros(k), 0
     started = time.perf_counter()
     try:
         batches = prefetch(source, start, t.total_steps)
         for s, batch in tqdm(batches, total=t.total_steps, initial=start, disable=not progress):
             states, metrics = step(states, batch, step_key, hypers)
-            loss_sum, window = loss_sum + metrics["loss"], window + 1  # stays on the device
+            ok = jnp.isfinite(metrics["loss"])  # stays on the device
+            loss_sum = loss_sum + jnp.where(ok, metrics["loss"], 0.0)
+            finite, window = finite + ok, window + 1
             done = s + 1
             if done % t.log_every == 0 or done == t.total_steps:
-                mean = [float(v) if np.isfinite(v) else None for v in np.asarray(loss_sum / window)]
-                record = {"step": done, "steps": window, "loss": mean}  # NaN as null: strict JSON
+                sums, counts = np.asarray(loss_sum), np.asarray(finite)
+                # null (strict JSON) for a member none of whose steps was finite.
+                mean = [float(a / c) if c else None for a, c in zip(sums, counts, strict=True)]
+                record = {"step": done, "steps": window, "loss": mean}
                 with log_path.open("a") as f:
                     f.write(json.dumps(record) + "\n")
-                loss_sum, window = jnp.zeros(k), 0
+                loss_sum, finite, window = jnp.zeros(k), jnp.zeros(k), 0
             if done % t.checkpoint_every == 0 or done == t.total_steps:
                 checkpoints.save(states, done)
     finally:

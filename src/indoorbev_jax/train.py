@@ -17,6 +17,7 @@ once (``experiments/sweep.py``).
 
 from __future__ import annotations
 
+import collections
 import hashlib
 import json
 import logging
@@ -341,12 +342,30 @@ def data_mesh(devices=None) -> Mesh:
     return Mesh(devices, ("data",))
 
 
-def shard_batch(batch: Batch, mesh: Mesh) -> Batch:
-    """Places a host batch on the mesh, split along its leading axis.
+def process_rows(batch: Batch, index: int | None = None, count: int | None = None) -> Batch:
+    """Process ``index``'s rows of a global batch of B frames: rows index * B / count up to
+    (index + 1) * B / count (default: this process of ``jax.process_count()``; one process
+    keeps them all)."""
+    count = jax.process_count() if count is None else count
+    if count == 1:
+        return batch
+    index = jax.process_index() if index is None else index
+    b = jax.tree.leaves(batch)[0].shape[0]
+    if b % count:
+        raise ValueError(f"train.batch_size={b} does not split over {count} processes")
+    n = b // count
+    return jax.tree.map(lambda x: x[index * n : (index + 1) * n], batch)
 
-    Each process passes its own part of the global batch (multi-host: after
-    ``jax.distributed.initialize()``); with one process that is the whole batch.
+
+def shard_batch(batch: Batch, mesh: Mesh) -> Batch:
+    """Places the global batch on the mesh, split along its leading axis.
+
+    Multi-host (after ``jax.distributed.initialize()``) every process makes the same global
+    batch (same seed and step) and passes its own rows (``process_rows``), so N hosts train
+    on the batch one host would (each passed the whole batch until 2026-12-06, which made
+    the global batch N copies of it).
     """
+    batch = process_rows(batch)
     sharding = NamedSharding(mesh, PartitionSpec("data"))
 
     def place(x):
@@ -537,6 +556,28 @@ def prefetch(source: Callable[[int], Batch], start: int, stop: int, size: int = 
 # Checkpoints ------------------------------------------------------------------------------
 
 
+def _layout(tree) -> collections.Counter:
+    """How many arrays of each (shape, dtype) a tree of arrays or array metadata holds."""
+    leaves = [x for x in jax.tree.leaves(tree) if hasattr(x, "shape")]
+    return collections.Counter((tuple(x.shape), str(np.dtype(x.dtype))) for x in leaves)
+
+
+def _check_layout(folder: Path, stored, abstract) -> None:
+    """Raises ``ValueError`` when checkpoint ``folder`` (its orbax metadata ``stored``) holds
+    arrays of other shapes than ``abstract``, naming one that differs."""
+    have, want = _layout(stored), _layout(abstract)
+    if have == want:
+        return
+    extra = next(iter(have - want), None)
+    missing = next(iter(want - have), None)
+    raise ValueError(
+        f"{folder}: holds {sum(have.values())} arrays, this run's state has "
+        f"{sum(want.values())}, and they differ (e.g. stored {extra}, expected {missing}): "
+        "the workdir holds another kind of run (a sweep's K stacked models, or a model of "
+        "another config or code version). Nothing was changed; train in another workdir"
+    )
+
+
 class Checkpoints:
     """Orbax checkpoints: the latest ``keep`` under ``checkpoints/``, the best by a
     validation metric under ``best/``. Restoring falls back to older checkpoints, with a
@@ -585,10 +626,18 @@ class Checkpoints:
             )
 
     def restore(self, template: TrainState) -> TrainState | None:
-        """The newest readable checkpoint, or None when there is none."""
+        """The newest readable checkpoint, or None when there is none. A checkpoint whose
+        arrays are not the template's (another kind of run: a sweep's K stacked models, a
+        model of another shape) raises ``ValueError``: falling back past it would delete it."""
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template)
         self.latest.reload()
         for step in sorted(self.latest.all_steps(), reverse=True):
+            try:
+                stored = self.latest.item_metadata(step)
+            except Exception:  # noqa: BLE001 - no readable layout: the restore below decides
+                stored = None
+            if stored is not None:
+                _check_layout(self.latest.directory / str(step), stored, abstract)
             try:
                 return self.latest.restore(step, args=ocp.args.StandardRestore(abstract))
             except Exception as e:  # noqa: BLE001 - any unreadable checkpoint falls back
@@ -695,8 +744,15 @@ def evaluate(config: Config, params, batches, predict_fn=None) -> dict:
 
 
 def _scalars(metrics: dict) -> dict:
-    """Means over the logged window (and over sweep members, if any)."""
-    return {k: float(np.mean(np.asarray(v))) for k, v in metrics.items()}
+    """Means over the logged window (and over sweep members, if any) of the finite values:
+    a skipped step's NaN loss (``skipped_steps`` counts it) left the window's mean NaN, the
+    applied steps' losses lost. NaN when none is finite."""
+    out = {}
+    for k, v in metrics.items():
+        a = np.asarray(v, np.float64)
+        finite = a[np.isfinite(a)]
+        out[k] = float(finite.mean()) if finite.size else math.nan
+    return out
 
 
 # Training batches cut into the ground-truth sampling database.
@@ -761,17 +817,35 @@ def _describe_source(data: str | None) -> str:
 SPLIT_FILES = ("train.txt", "val.txt")
 
 
-def run_record(data: str | None) -> dict:
-    """What ``run.json`` records of the data source: the folder (None for the simulator) and,
-    for a folder, the sha256 of its split lists, so a resume that would read other frames,
-    or the same ones in another order, is refused."""
+def run_record(data: str | None, kind: str = "train") -> dict:
+    """What ``run.json`` records: the kind of run ("train" or "sweep"), the data source (a
+    folder, None for the simulator) and, for a folder, the sha256 of its split lists, so a
+    resume that would read other frames, or the same ones in another order, is refused."""
     if data is None:
-        return {"data": None}
+        return {"kind": kind, "data": None}
     splits = {}
     for name in SPLIT_FILES:
         path = Path(data) / name
         splits[name] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
-    return {"data": data, "splits": splits}
+    return {"kind": kind, "data": data, "splits": splits}
+
+
+# Files only one kind of run writes (also in workdirs from before run.json named the kind).
+_KIND_FILES = {"train": ("metrics.jsonl", "best"), "sweep": ("hypers.json", "sweep.jsonl")}
+
+
+def check_run_kind(workdir: Path, kind: str) -> None:
+    """Raises ``ValueError`` when ``workdir`` holds the other kind of run (a training run
+    for a sweep, or a sweep for training): with the same config and data the resume checks
+    passed, and the first checkpoint save deleted the other run's checkpoints."""
+    other = "sweep" if kind == "train" else "train"
+    run_path = workdir / "run.json"
+    recorded = json.loads(run_path.read_text()).get("kind") if run_path.exists() else None
+    found = [name for name in _KIND_FILES[other] if (workdir / name).exists()]
+    if recorded == other or found:
+        what = f"run.json says {other!r}" if recorded == other else f"it has {found[0]}"
+        held, verb = ("a sweep", "train") if other == "sweep" else ("a training run", "sweep")
+        raise ValueError(f"{workdir}: holds {held} ({what}); {verb} in another workdir")
 
 
 def _has_checkpoint(workdir: Path) -> bool:
@@ -864,6 +938,7 @@ def train_and_evaluate(
     # that would refuse the corrected command too.
     config_path, run_path = workdir / "config.json", workdir / "run.json"
     data_source = None if data is None else str(Path(data).resolve())
+    check_run_kind(workdir, "train")
     if config_path.exists():
         check_resume(config_path, run_path, config, data_source)
 
