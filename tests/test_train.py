@@ -943,3 +943,15 @@ def test_each_process_trains_on_its_rows_of_the_global_batch():
     assert T.process_rows(batch) is batch  # one process: the whole batch
     with pytest.raises(ValueError, match="train.batch_size=8 does not split over 3 processes"):
         T.process_rows(batch, 0, 3)
+
+
+def test_load_params_refuses_a_sweep_workdir_and_leaves_it_resumable(tmp_path):
+    """load_params (predict, export, --init-from) made best/ in a sweep's workdir, which
+    then counted as a training run's and refused every resume of the sweep."""
+    (tmp_path / "config.json").write_text(CFG.to_json())
+    (tmp_path / "run.json").write_text(json.dumps(T.run_record(None, "sweep")) + "\n")
+    with pytest.raises(ValueError, match=r"holds a sweep \(run\.json says 'sweep'\)"):
+        T.load_params(tmp_path)
+    assert not (tmp_path / "best").exists()
+    (tmp_path / "best").mkdir()  # as those versions left it: run.json's kind decides
+    T.check_run_kind(tmp_path, "sweep")

@@ -234,7 +234,7 @@ def _file_frames(paths: list[Path]) -> Iterator[Frame]:
     for path in paths:
         try:
             yield Frame(path.stem, read_cloud(path))
-        except (kitti.DatasetError, OSError) as e:
+        except (ValueError, OSError) as e:  # DatasetError, or a file no check foresaw
             yield Frame(path.stem, None, error=e)
 
 

@@ -841,7 +841,8 @@ def check_run_kind(workdir: Path, kind: str) -> None:
     other = "sweep" if kind == "train" else "train"
     run_path = workdir / "run.json"
     recorded = json.loads(run_path.read_text()).get("kind") if run_path.exists() else None
-    found = [name for name in _KIND_FILES[other] if (workdir / name).exists()]
+    # run.json's kind decides; the files only for a run.json from before it named one.
+    found = [] if recorded else [name for name in _KIND_FILES[other] if (workdir / name).exists()]
     if recorded == other or found:
         what = f"run.json says {other!r}" if recorded == other else f"it has {found[0]}"
         held, verb = ("a sweep", "train") if other == "sweep" else ("a training run", "sweep")
@@ -1039,9 +1040,13 @@ def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config
         config = Config.from_dict(json.loads(config_file.read_text()))
     except json.JSONDecodeError as e:
         raise ValueError(f"{config_file}: not valid JSON ({e})") from None
+    check_run_kind(workdir, "train")  # a sweep's checkpoints hold K stacked models
     template = init_state(config, jax.random.key(0))
-    checkpoints = Checkpoints(workdir, config.train.keep_checkpoints)
-    manager = checkpoints.best if which == "best" and checkpoints.best.all_steps() else None
+    # No best/ made where there is none (orbax creates the folder it is given).
+    has_best = (workdir / "best").is_dir()
+    checkpoints = Checkpoints(workdir, config.train.keep_checkpoints, "pq" if has_best else None)
+    use_best = which == "best" and has_best and checkpoints.best.all_steps()
+    manager = checkpoints.best if use_best else None
     state = None
     if manager is not None:
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template)

@@ -55,7 +55,8 @@ def _write_pcd(path, points, data="binary", layout=LAYOUT, height=1):
     if data == "binary":
         path.write_bytes(header + s.tobytes())
     else:
-        columns = [np.asarray(s[n], np.float64).reshape(len(s), -1) for n in s.dtype.names]
+        columns = [np.asarray(s[n], np.float64).reshape(len(s), int(np.prod(s[n].shape[1:])))
+                   for n in s.dtype.names]  # fmt: skip
         table = np.concatenate(columns, axis=1).tolist()  # float32 values, exact in repr
         path.write_bytes(header + "".join(" ".join(map(repr, r)) + "\n" for r in table).encode())
 
@@ -150,3 +151,46 @@ def test_predict_input_reads_pcd_and_npy_files_and_folders(tmp_path):
     np.save(tmp_path / "scans" / "000001.npy", POINTS)  # two clouds would write one output
     with pytest.raises(ValueError, match=r"000001\.npy and 000001\.pcd: two clouds named"):
         P.open_input(tmp_path / "scans")
+
+
+def test_empty_and_odd_pcd_headers(tmp_path):
+    """A frame without returns (0 points) reads empty; POINTS -1 is named; a comment line
+    in another encoding is a comment (it was refused as not ASCII)."""
+    for data in ("binary", "ascii"):
+        _write_pcd(tmp_path / f"e_{data}.pcd", POINTS[:0], data)
+        assert clouds.read_pcd(tmp_path / f"e_{data}.pcd").shape == (0, 4)
+    good = tmp_path / "g.pcd"
+    _write_pcd(good, POINTS)
+    content = good.read_bytes()
+    good.write_bytes("# scanné à Lyon\n".encode() + content)
+    np.testing.assert_array_equal(clouds.read_pcd(good), POINTS)
+    good.write_bytes(content.replace(b"POINTS 50", b"POINTS -1"))
+    with pytest.raises(kitti.DatasetError, match=r"g\.pcd: WIDTH 50, HEIGHT 1, POINTS -1"):
+        clouds.read_pcd(good)
+
+
+def test_channels_first_npy_is_named(tmp_path):
+    """nuScenes keeps clouds as [4, N]: read as [N, 4] they were 4 garbage points."""
+    np.save(tmp_path / "cn.npy", POINTS.T)
+    with pytest.raises(kitti.DatasetError, match=r"cn\.npy: shape \[4, 50\] looks channels-first"):
+        clouds.read_npy(tmp_path / "cn.npy")
+    np.save(tmp_path / "few.npy", POINTS[:4])  # 4 points of 4 values: [N, C] as documented
+    np.testing.assert_array_equal(clouds.read_npy(tmp_path / "few.npy"), POINTS[:4])
+
+
+def test_a_bad_file_in_a_folder_is_a_bad_frame_not_a_stop(tmp_path, monkeypatch):
+    """Any ValueError of a reader is that frame's error (--skip-bad-frames goes on), not the
+    end of the run: an empty binary .pcd raised numpy's own before it was caught."""
+    np.save(tmp_path / "a.npy", POINTS)
+    np.save(tmp_path / "b.npy", POINTS)
+    read = clouds.read_cloud
+
+    def flaky(path):
+        if path.name == "a.npy":
+            raise ValueError("cannot reshape array of size 0 into shape (0,newaxis)")
+        return read(path)
+
+    monkeypatch.setattr(P, "read_cloud", flaky)
+    count, frames = P.open_input(tmp_path)
+    a, b = list(frames)
+    assert count == 2 and isinstance(a.error, ValueError) and b.error is None

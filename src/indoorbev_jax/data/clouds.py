@@ -71,6 +71,11 @@ def read_npy(path: str | os.PathLike) -> np.ndarray:
         raise DatasetError(f"{path}: not a readable .npy array ({e})") from e
     if arr.dtype.names:  # structured: fields by name
         return _columns(path, list(arr.dtype.names), lambda n: arr[n].reshape(-1))
+    if arr.ndim == 2 and arr.shape[0] in (3, 4, 5) and arr.shape[1] > 16:
+        raise DatasetError(
+            f"{path}: shape {list(arr.shape)} looks channels-first ([C, N], as nuScenes and "
+            "many torch pipelines keep clouds); expected [N, C]: save arr.T"
+        )
     if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] < 3:
         raise DatasetError(
             f"{path}: expected a numeric array [N, 3] or [N, 4+] (x, y, z[, intensity]), "
@@ -89,6 +94,9 @@ def _parse_pcd_header(path: Path, data: bytes) -> tuple[dict[str, list[str]], in
         end = data.find(b"\n", pos)
         if end < 0:
             raise DatasetError(f"{path}:{lineno}: the header ends without a DATA line")
+        if data[pos:end].lstrip().startswith(b"#"):  # a comment, in any encoding
+            pos = end + 1
+            continue
         try:
             line = data[pos:end].decode("ascii").strip()
         except UnicodeDecodeError as e:
@@ -131,6 +139,10 @@ def read_pcd(path: str | os.PathLike) -> np.ndarray:
         counts = [int(c) for c in counts]
     except ValueError as e:
         raise DatasetError(f"{path}: WIDTH, HEIGHT, POINTS and COUNT must be integers ({e})") from e
+    if min(width, height, n, *counts) < 0:
+        raise DatasetError(
+            f"{path}: WIDTH {width}, HEIGHT {height}, POINTS {n} and COUNT must be >= 0"
+        )
     dtype = []
     for k, (name, size, kind, count) in enumerate(zip(fields, sizes, types, counts, strict=True)):
         letter = _PCD_KINDS.get(kind.upper())
@@ -154,7 +166,9 @@ def read_pcd(path: str | os.PathLike) -> np.ndarray:
                 f"{dtype.itemsize} bytes = {need}"
             )
         points = np.frombuffer(data, dtype, count=n, offset=offset)
-        return _columns(path, names, lambda f: points[f].reshape(n, -1)[:, 0])
+        # A COUNT > 1 field reads its first value (x, y, z and intensity have one).
+        first = lambda f: points[f] if points[f].ndim == 1 else points[f][:, 0]  # noqa: E731
+        return _columns(path, names, first)
     if kind == "ascii":
         return _read_pcd_ascii(path, data[offset:], dtype, names, n)
     if kind == "binary_compressed":
@@ -167,6 +181,8 @@ def read_pcd(path: str | os.PathLike) -> np.ndarray:
 
 def _read_pcd_ascii(path: Path, text: bytes, dtype: np.dtype, names: list[str], n: int):
     width = sum(int(np.prod(dtype[f].shape, dtype=int)) for f in dtype.names)
+    if n == 0 and not text.strip():
+        return _columns(path, names, lambda f: np.zeros(0))
     try:
         values = np.loadtxt(io.BytesIO(text), dtype=np.float64, ndmin=2)
     except ValueError as e:  # numpy names the row: "the number of columns changed ... row 5"
