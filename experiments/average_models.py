@@ -18,7 +18,7 @@ import math
 
 import jax
 
-from indoorbev_jax.cli import add_views_argument, rpy_argument
+from indoorbev_jax.cli import add_views_argument, join_negative_values, rpy_argument
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.predict import average_models, export_model, with_thresholds
 
@@ -38,7 +38,7 @@ def main(argv=None) -> None:
         help="sim.sensor_rpy to record, degrees: needed when the models were trained for "
         "different lidar tilts (default: their common one)",
     )
-    args = p.parse_args(argv)
+    args = p.parse_args(join_negative_values(argv, flags=("--sensor-rpy",)))
     try:
         config, params = average_models(args.models, args.sensor_rpy)
         config = with_thresholds(config, args.score_threshold, args.mask_threshold, args.views)

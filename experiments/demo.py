@@ -15,6 +15,7 @@ import jax
 import numpy as np
 
 from indoorbev_jax import viz
+from indoorbev_jax.cli import positive_int
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
 from indoorbev_jax.metrics import Evaluator
@@ -38,7 +39,7 @@ def targets_to_labels(targets, k: int) -> kitti.ObjectLabels:
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="demo_out")
-    p.add_argument("--frames", type=int, default=4)
+    p.add_argument("--frames", type=positive_int, default=4)
     p.add_argument("--model", default=str(SHIPPED), help="model file or run directory")
     p.add_argument("--seed", type=int, default=2026)
     args = p.parse_args(argv)

@@ -46,6 +46,7 @@ import argparse
 import dataclasses
 import itertools
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -300,6 +301,8 @@ def main(argv=None) -> None:
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(join_negative_values(argv))
     check_frame_set(p, args)
+    if not 0 <= args.intensity_factor < math.inf:  # as predict's intensity_factor
+        p.error(f"--intensity-factor: expected a finite number >= 0, got {args.intensity_factor}")
     if args.seed is None:
         args.seed = default_seed(args.split)
     try:
@@ -312,7 +315,10 @@ def main(argv=None) -> None:
             p.error(f"--sensor-height: expected HEIGHT or MIN,MAX, got {len(heights)} values")
         try:
             sim = dataclasses.replace(config.sim, sensor_height=heights)
-        except ConfigError as e:
+            from indoorbev_sim.scenes import check_sensor_height
+
+            check_sensor_height(sim)  # a ceiling too low: said here, not as a traceback
+        except (ConfigError, ValueError) as e:
             p.error(f"--sensor-height: {e}")
         config = dataclasses.replace(config, sim=sim)
     if args.lidar_rpy is not None or args.tilt_jitter is not None:
@@ -355,7 +361,7 @@ def main(argv=None) -> None:
     names = [f"{v}*" if v in held_out else v for v in ALL_VARIANTS]
     title = "per object variant (* held out of train and val)"
     setup = {"model": str(args.model), "split": args.split, "frames": args.frames,
-             "seed": args.seed, "intensity_factor": args.intensity_factor,
+             "batch": args.batch, "seed": args.seed, "intensity_factor": args.intensity_factor,
              "sensor_height": list(config.sim.sensor_height), "z_offset": args.z_offset,
              "sensor_rpy": list(config.sim.sensor_rpy),
              "sensor_tilt_jitter": config.sim.sensor_tilt_jitter,
@@ -369,8 +375,9 @@ def main(argv=None) -> None:
         setting = {"score_threshold": inference.score_threshold,
                    "mask_threshold": inference.mask_threshold}  # fmt: skip
         sweep.append((inference, text, {**setting, **payload}))
+    # The batch is part of the frame set (B scenes of frames / B frames each), as the seed is.
     head = f"model {args.model} (preset {config.name}), {args.frames} simulated '{args.split}' " \
-        f"frames, seed {args.seed}"  # fmt: skip
+        f"frames, batch {args.batch}, seed {args.seed}"  # fmt: skip
     if args.intensity_factor != 1.0:
         head += f", intensity x {args.intensity_factor:g}"
     if args.sensor_height is not None:

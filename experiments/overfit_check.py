@@ -19,6 +19,7 @@ import time
 
 import jax
 
+from indoorbev_jax.cli import positive_int
 from indoorbev_jax.config import Config, ConfigError, with_overrides
 from indoorbev_jax.train import Hyper, init_state, jit_train_step, make_train_step
 
@@ -26,13 +27,19 @@ from indoorbev_jax.train import Hyper, init_state, jit_train_step, make_train_st
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--preset", default="small", choices=("paper", "small", "tiny"))
-    p.add_argument("--steps", type=int, default=150)
+    p.add_argument("--steps", type=positive_int, default=150)
     p.add_argument("--learning-rate", type=float, default=1e-3)
-    p.add_argument("--every", type=int, default=25, help="print every N steps")
+    p.add_argument("--every", type=positive_int, default=25, help="print every N steps")
     p.add_argument("--seed", type=int, default=0, help="seed of the batch (the init uses +1)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="config override, as in experiments/train.py")  # fmt: skip
     args = p.parse_args(argv)
+    # These are the check's own: an override of them would print as applied and not be.
+    fixed = ("train.augment", "train.learning_rate", "train.warmup_steps", "train.total_steps")
+    overridden = [item for item in args.set if item.split("=", 1)[0].strip() in fixed]
+    if overridden:
+        p.error(f"--set {overridden[0]}: the check sets {', '.join(fixed)} itself "
+                "(--learning-rate and --steps set the two that may change)")  # fmt: skip
     config = Config.preset(args.preset)
     try:
         config = with_overrides(config, args.set)

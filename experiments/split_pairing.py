@@ -16,6 +16,7 @@ import jax
 import numpy as np
 from indoorbev_sim import generate
 
+from indoorbev_jax.cli import positive_int
 from indoorbev_jax.config import Config
 
 
@@ -24,8 +25,8 @@ def main(argv=None) -> dict:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--preset", default="small")
-    p.add_argument("--frames", type=int, default=256)
-    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--frames", type=positive_int, default=256)
+    p.add_argument("--batch", type=positive_int, default=8)
     p.add_argument("--val-seed", type=int, default=eval_sim.VAL_SEED)
     args = p.parse_args(argv)
     if args.frames % args.batch:

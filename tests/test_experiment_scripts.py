@@ -90,7 +90,8 @@ def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, caps
     assert exit_info.value.code == 2
     assert "inference.mask_threshold': must lie in [0, 1]" in capsys.readouterr().err
     for bad, said in (("1,2,3", "expected HEIGHT or MIN,MAX, got 3 values"),
-                      ("0.8,0.3", "sim.sensor_height': expected 0 <= min <= max")):  # fmt: skip
+                      ("0.8,0.3", "sim.sensor_height': expected 0 <= min <= max"),
+                      ("2.45", "sim.sensor_height: up to 2.45 m reaches the ceiling")):  # fmt: skip
         with pytest.raises(SystemExit) as exit_info:
             eval_sim.main(["--model", str(path), "--sensor-height", bad])
         assert exit_info.value.code == 2
@@ -168,6 +169,9 @@ def test_eval_sim_sweep_equals_one_evaluation_per_setting(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "4 threshold settings" in printed and "    0.1      0.4" in printed
     assert printed.count("per object variant") == 4 and "Misc/trolley*" in printed
+    # The batch is part of the frame set (B scenes of frames / B frames each), as the seed.
+    assert json.loads(out.read_text())["setup"]["batch"] == 2
+    assert "2 simulated 'test' frames, batch 2, seed 5" in printed
     sweep = json.loads(out.read_text())["sweep"]
     metrics = [{k: v for k, v in e.items() if not k.endswith("threshold")} for e in sweep]
     assert metrics[0] != metrics[3]  # the settings matter
@@ -320,6 +324,16 @@ def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
             script.main([str(paths[0]), str(bad), "--out", str(tmp_path / "two.msgpack")])
         assert exit_info.value.code == 2 and not (tmp_path / "two.msgpack").exists()
         assert f"{bad}: {message}" in capsys.readouterr().err
+    # Models of other class lists: their class rows mean other classes.
+    names = tuple(reversed(tiny.data.class_names))
+    renamed = dataclasses.replace(tiny, data=dataclasses.replace(tiny.data, class_names=names))
+    reordered = export_model(trees[1], renamed, tmp_path / "reordered.msgpack")
+    with pytest.raises(ValueError, match=rf"{re.escape(str(reordered))}: data\.class_names = "):
+        average_models([paths[0], reordered])
+    # A negative roll is a value, as for predict's --lidar-rpy.
+    neg = tmp_path / "neg.msgpack"
+    script.main([str(paths[0]), str(tilted), "--out", str(neg), "--sensor-rpy", "-5,10,0"])
+    assert load_model(neg)[0].sim.sensor_rpy == (-5.0, 10.0, 0.0)
     # An out-of-range threshold is named by its field.
     with pytest.raises(SystemExit) as exit_info:
         script.main([*map(str, paths[:2]), "--out", str(out), "--mask-threshold", "2"])
@@ -398,6 +412,13 @@ def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
         ("eval_sim", ["--model", "m", "--batch", "0"], "argument --batch: must be > 0, got 0"),
         ("eval_sim", ["--model", "m", "--frames", "-8"], "argument --frames: must be > 0, got -8"),
         ("pose_errors", ["--model", "none.msgpack"], "none.msgpack: no such model file or run"),
+        # Before 2026-12-06 (night): ZeroDivisionError or a JAX TypeError after compiling,
+        # a silent run, or an override printed as applied and replaced.
+        ("demo", ["--frames", "0"], "argument --frames: must be > 0, got 0"),
+        ("split_pairing", ["--batch", "0"], "argument --batch: must be > 0, got 0"),
+        ("overfit_check", ["--every", "0"], "argument --every: must be > 0, got 0"),
+        ("overfit_check", ["--set", "train.augment=true"], "--set train.augment=true: the check"),
+        ("eval_sim", ["--model", "m", "--intensity-factor", "-1"], "--intensity-factor: expected"),
     ],
 )
 def test_scripts_refuse_arguments_they_cannot_run(script, argv, message, capsys):

@@ -184,6 +184,13 @@ def average_models(
                 "average into a model for no one tilt: say which tilt to record "
                 "(--sensor-rpy ROLL,PITCH,YAW)"
             )
+        if other_config.data.class_names != config.data.class_names:
+            # The class head's rows mean these classes: rows of other classes must not mix.
+            raise ValueError(
+                f"{path}: data.class_names = {other_config.data.class_names!r}, but "
+                f"{first_path} has {config.data.class_names!r}; only models of one class "
+                "list can be averaged"
+            )
         lo = min(lo, other_config.sim.sensor_height[0])
         hi = max(hi, other_config.sim.sensor_height[1])
         jitter = max(jitter, other_config.sim.sensor_tilt_jitter)

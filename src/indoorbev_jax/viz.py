@@ -66,11 +66,21 @@ def render_bev(
     def px(x, y):
         return (x - x0) / v * scale, (y1 - y) / v * scale
 
+    # Points outside the grid (or NaN) are not drawn: clipped onto the border, an 8 m wall
+    # showed as a false one at the 5 m edge.
+    points = np.asarray(points)
+    if len(points):
+        x, y = points[:, 0], points[:, 1]
+        with np.errstate(invalid="ignore"):  # NaN compares False: not drawn
+            on_grid = (x >= grid.x_range[0]) & (x <= grid.x_range[1])
+            on_grid &= (y >= grid.y_range[0]) & (y <= grid.y_range[1])
+        points = points[on_grid]
     if len(points):
         pts = points[np.argsort(points[:, 2])]  # higher points drawn last, on top
         u, r = px(pts[:, 0], pts[:, 1])
-        u = np.clip(u.astype(int), 0, img.shape[1] - 2)
-        r = np.clip(r.astype(int), 0, img.shape[0] - 2)
+        # x_max / y_min fall on the last pixel's far edge: the 2 x 2 dot stays inside.
+        u = np.minimum(u.astype(int), img.shape[1] - 2)
+        r = np.minimum(r.astype(int), img.shape[0] - 2)
         cols = height_colour(pts[:, 2], grid.z_range)
         for du in (0, 1):  # 2 x 2 pixel dots
             for dr in (0, 1):
