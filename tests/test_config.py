@@ -209,3 +209,24 @@ def test_configs_pass_through_jit_and_vmap_without_static_argnums():
     assert float(cells(coarse, 1.0)) == coarse.shape[0]
     assert traces == [grid.cell_size, coarse.cell_size]
     assert jax.tree.leaves(Config.tiny()) == []
+
+
+def test_python_built_sections_check_each_fields_type():
+    """GridConfig(cell_size="0.1") raised a bare TypeError inside a range check, and an int
+    field given 2.5 passed to fail far later; numpy numbers and lists are what Python
+    callers pass, and read as the annotated type (lists as tuples: configs are hashed)."""
+    import numpy as np
+
+    for build, message in [
+        (lambda: GridConfig(cell_size="0.1"), "'grid.cell_size': got '0.1', expected float"),
+        (lambda: TrainConfig(batch_size=2.5), "'train.batch_size': got 2.5, expected int"),
+        (lambda: TrainConfig(augment="no"), "'train.augment': got 'no', expected bool"),
+        (lambda: SimConfig(sensor_height=(0.3, "x")), "'sim.sensor_height': got (0.3, 'x')"),
+    ]:
+        with pytest.raises(ConfigError, match=re.escape(message)):
+            build()
+    grid = GridConfig(x_range=[-4, 4], cell_size=np.float32(0.25))
+    assert grid == GridConfig(x_range=(-4.0, 4.0), cell_size=0.25)
+    assert type(grid.cell_size) is float and type(grid.x_range) is tuple
+    hash(grid)
+    assert TrainConfig(batch_size=np.int64(8)).batch_size == 8

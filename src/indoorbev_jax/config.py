@@ -17,12 +17,15 @@ loss weights) are read from here once and passed into jitted steps as arrays.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
+import numbers
 import typing
 from typing import Any
 
 import jax
+import numpy as np
 
 CLASS_NAMES: tuple[str, ...] = (
     "Table",
@@ -55,6 +58,58 @@ VIEWS: dict[str, tuple[tuple[int, int], tuple[int, int]]] = {
 
 class ConfigError(ValueError):
     """A configuration field holds a value that cannot work; the message names the field."""
+
+
+def _coerce(value: Any, hint) -> Any:
+    """``value`` of a field built in Python as the annotation ``hint`` asks: numpy numbers and
+    ints for floats accepted (as Python's), a list for a tuple; raises ``TypeError`` for
+    another type, ``NotImplementedError`` for an annotation it does not check."""
+    if hint is bool:
+        if isinstance(value, bool | np.bool_):
+            return bool(value)
+    elif hint is int:
+        if isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_):
+            return int(value)
+    elif hint is float:
+        if isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_):
+            return float(value)
+    elif hint is str:
+        if isinstance(value, str):
+            return value
+    elif typing.get_origin(hint) is tuple:
+        args = typing.get_args(hint)
+        if isinstance(value, dict) and typing.get_origin(args[0]) is tuple:
+            value = tuple(value.items())  # {"Desk": "Table"} for (name, class) pairs
+        if isinstance(value, list | tuple):
+            types = [args[0]] * len(value) if args[-1] is Ellipsis else list(args)
+            if len(types) == len(value):
+                return tuple(_coerce(v, h) for v, h in zip(value, types, strict=True))
+    else:
+        raise NotImplementedError(hint)
+    raise TypeError(value)
+
+
+@functools.cache
+def _hints(kind) -> dict[str, Any]:
+    return typing.get_type_hints(kind)
+
+
+def _check_types(section, prefix: str, skip: tuple[str, ...] = ()) -> None:
+    """Each field of a config ``section`` built in Python has its annotated type, or the
+    error names it (``GridConfig(cell_size="0.1")`` raised a bare TypeError deep in a
+    check, and a float for an int field passed to fail far later)."""
+    for field in dataclasses.fields(section):
+        if field.name in skip:  # checked by the section itself, with its own message
+            continue
+        value, hint = getattr(section, field.name), _hints(type(section))[field.name]
+        try:
+            fixed = _coerce(value, hint)
+        except NotImplementedError:
+            continue
+        except TypeError:
+            _fail(f"{prefix}.{field.name}", f"got {value!r}, expected {_describe(hint)}")
+        if fixed != value or type(fixed) is not type(value):
+            object.__setattr__(section, field.name, fixed)
 
 
 def _fail(field: str, message: str) -> None:
@@ -96,6 +151,7 @@ class GridConfig:
     cell_size: float = 0.02
 
     def __post_init__(self):
+        _check_types(self, "grid")
         _check_positive("grid.cell_size", self.cell_size)
         if not math.isfinite(self.cell_size):
             _fail("grid.cell_size", f"must be finite, got {self.cell_size!r}")
@@ -175,6 +231,7 @@ class DataConfig:
     mask_targets: str = "shape"
 
     def __post_init__(self):
+        _check_types(self, "data", skip=("class_map",))
         if self.mask_targets not in ("shape", "box"):
             _fail("data.mask_targets", f"expected 'shape' or 'box', got {self.mask_targets!r}")
         _check_positive("data.max_points", self.max_points)
@@ -221,6 +278,7 @@ class EncoderConfig:
     channels: int = 64  # C_enc, features per BEV cell
 
     def __post_init__(self):
+        _check_types(self, "encoder")
         _check_positive("encoder.channels", self.channels)
         if self.channels % 2:
             _fail("encoder.channels", f"must be even (two branches of C/2), got {self.channels}")
@@ -248,6 +306,7 @@ class BackboneConfig:
     chunk_windows: int = 0
 
     def __post_init__(self):
+        _check_types(self, "backbone")
         n = len(self.embed_dims)
         if self.chunk_windows < 0:
             _fail("backbone.chunk_windows", f"must be >= 0 (0: off), got {self.chunk_windows}")
@@ -332,6 +391,7 @@ class HeadConfig:
     mask_pooled_class: bool = False
 
     def __post_init__(self):
+        _check_types(self, "head")
         if self.query_init not in QUERY_INITS:
             _fail("head.query_init", f"expected one of {QUERY_INITS}, got {self.query_init!r}")
         for name in ("hidden_dim", "num_queries", "num_layers", "ffn_dim", "memory_stride"):
@@ -376,6 +436,7 @@ class LossConfig:
     seed_weight: float = 1.0
 
     def __post_init__(self):
+        _check_types(self, "loss")
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if isinstance(v, float) and (v < 0 or not math.isfinite(v)):
@@ -413,6 +474,7 @@ class InferenceConfig:
     view_iou: float = 0.5
 
     def __post_init__(self):
+        _check_types(self, "inference")
         for name in ("score_threshold", "mask_threshold", "overlap_threshold", "view_iou"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
@@ -447,6 +509,7 @@ class AugmentConfig:
     gt_sampling_attempts: int = 4  # candidate poses tried per pasted object
 
     def __post_init__(self):
+        _check_types(self, "augment")
         for name in (
             "flip_prob",
             "range_dropout_prob",
@@ -502,6 +565,7 @@ class TrainConfig:
     keep_checkpoints: int = 3
 
     def __post_init__(self):
+        _check_types(self, "train")
         for name in (
             "batch_size",
             "eval_batches",
@@ -560,6 +624,7 @@ class SimConfig:
     test_variants: tuple[str, ...] = ("Misc/trolley",)
 
     def __post_init__(self):
+        _check_types(self, "sim")
         for name in ("num_rays", "frames_per_sequence", "placement_tries", "plans_per_layout",
                      "bank_per_variant"):  # fmt: skip
             _check_positive(f"sim.{name}", getattr(self, name))
