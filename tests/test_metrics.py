@@ -764,3 +764,33 @@ def test_eval_cli_says_which_objects_have_no_cell(tmp_path, capsys):
     (tmp_path / "gt/val.txt").write_text("\n")
     assert main([*argv, "--preset", "tiny", "--split", "val"]) == 1
     assert f"{tmp_path / 'gt/val.txt'}: no frames" in capsys.readouterr().out
+
+
+def test_evaluator_takes_targets_as_a_dict_like_set_loss():
+    """types.py lets the containers read like the PyTorch code's dicts; the Evaluator read
+    targets.classes and raised a bare AttributeError for one."""
+    import dataclasses as dc
+
+    import jax.numpy as jnp
+
+    from indoorbev_jax.types import Targets
+
+    rng = np.random.default_rng(0)
+    b, q, m, h, w = 1, 4, 2, 8, 8
+    preds = {"logits": jnp.asarray(rng.normal(size=(1, b, q, 10)), jnp.float32),
+             "dims": jnp.zeros((1, b, q, 3)), "pos": jnp.zeros((1, b, q, 3)),
+             "yaw": jnp.zeros((1, b, q, 1)),
+             "masks": jnp.asarray(rng.normal(size=(1, b, q, h, w)), jnp.float32)}  # fmt: skip
+    masks = np.zeros((b, m, h, w), bool)
+    masks[0, 0, :3, :3] = True
+    targets = Targets(classes=jnp.array([[1, 9]]), dims=jnp.ones((b, m, 3)),
+                      pos=jnp.zeros((b, m, 3)), yaw=jnp.zeros((b, m)),
+                      valid=jnp.array([[True, False]]), masks=jnp.asarray(masks),
+                      instance_ids=jnp.asarray(masks[:, 0].astype(np.int32)))  # fmt: skip
+    as_dataclass, as_dict = Evaluator(), Evaluator()
+    as_dataclass.add(preds, targets)
+    as_dict.add(preds, {f.name: getattr(targets, f.name) for f in dc.fields(targets)})
+    np.testing.assert_equal(as_dict.compute(), as_dataclass.compute())  # NaN mIoU: no match
+    with pytest.raises(TypeError, match=r"targets: missing \['instance_ids'\]"):
+        Evaluator().add(preds, {f.name: getattr(targets, f.name) for f in dc.fields(targets)
+                                if f.name != "instance_ids"})  # fmt: skip

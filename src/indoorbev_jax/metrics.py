@@ -25,6 +25,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from indoorbev_jax.config import CLASS_NAMES, NUM_CLASSES, InferenceConfig
+from indoorbev_jax.types import Targets, _from_mapping
 
 # pycocotools' recall grid, built the same way so the values match bit for bit.
 _REC_THRS = np.linspace(0.0, 1.00, int(np.round((1.00 - 0.0) / 0.01)) + 1, endpoint=True)
@@ -714,7 +715,8 @@ class Evaluator:
 
         Args:
           predictions: ``types.Predictions`` (logits [L, B, Q, K], masks [L, B, Q, H, W]).
-          targets: ``types.Targets`` of the same B frames.
+          targets: ``types.Targets`` of the same B frames, or a dict of its fields
+            (``instance_ids`` included).
         """
         from indoorbev_jax.inference import panoptic_inference
 
@@ -725,11 +727,14 @@ class Evaluator:
 
         Args:
           output: ``inference.PanopticOutput`` of B frames.
-          targets: ``types.Targets`` of the same B frames.
+          targets: ``types.Targets`` of the same B frames, or a dict of its fields
+            (``instance_ids`` included).
           gt_tags: optional int [B, M], a group id >= 0 per valid target (e.g. the simulator's
             object variant) for ``tag_confusion``; or a dict of such arrays, one per named
             grouping (``tag_confusion(..., grouping=name)``).
         """
+        # A dict of the Targets fields, as set_loss takes; the maps are needed here.
+        targets = _from_mapping(Targets, targets, "targets")
         out = {f.name: np.asarray(getattr(output, f.name)) for f in dataclasses.fields(output)}
         classes = np.asarray(targets.classes)
         valid = np.asarray(targets.valid).astype(bool)
