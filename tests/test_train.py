@@ -950,8 +950,27 @@ def test_load_params_refuses_a_sweep_workdir_and_leaves_it_resumable(tmp_path):
     then counted as a training run's and refused every resume of the sweep."""
     (tmp_path / "config.json").write_text(CFG.to_json())
     (tmp_path / "run.json").write_text(json.dumps(T.run_record(None, "sweep")) + "\n")
-    with pytest.raises(ValueError, match=r"holds a sweep \(run\.json says 'sweep'\)"):
+    with pytest.raises(ValueError, match=r"a sweep's workdir: its checkpoints hold K stacked"):
         T.load_params(tmp_path)
     assert not (tmp_path / "best").exists()
     (tmp_path / "best").mkdir()  # as those versions left it: run.json's kind decides
     T.check_run_kind(tmp_path, "sweep")
+
+
+def test_a_sweep_resumes_after_val_txt_changes(data, tmp_path):
+    """A sweep reads train.txt only: a changed val.txt refused its resume, with advice
+    (train in another workdir, --init-from) a sweep cannot follow."""
+    import shutil
+
+    folder = Path(shutil.copytree(data, tmp_path / "data")).resolve()
+    record = T.run_record(str(folder), "sweep")
+    assert record["kind"] == "sweep" and list(record["splits"]) == ["train.txt"]
+    workdir = tmp_path / "sweep"
+    (workdir / "checkpoints" / "3").mkdir(parents=True)  # as if step 3 were saved
+    (workdir / "config.json").write_text(CFG.to_json())
+    (workdir / "run.json").write_text(json.dumps(record) + "\n")
+    (folder / "val.txt").write_text("000000\n")
+    T.check_resume(workdir / "config.json", workdir / "run.json", CFG, str(folder), "sweep")
+    (folder / "train.txt").write_text("000001\n")
+    with pytest.raises(ValueError, match=r"train\.txt changed .* or sweep in another workdir$"):
+        T.check_resume(workdir / "config.json", workdir / "run.json", CFG, str(folder), "sweep")

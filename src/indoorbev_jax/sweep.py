@@ -111,12 +111,13 @@ def run_sweep(
 ) -> TrainState:
     """Trains the K models of ``hypers`` for ``config.train.total_steps`` steps.
 
-    ``workdir`` receives ``config.json``, ``run.json`` (the data source), ``hypers.json``
-    (the K settings), ``sweep.jsonl`` (per model, the training loss averaged over each
-    ``train.log_every`` steps) and orbax checkpoints of all K states under ``checkpoints/``
-    every ``train.checkpoint_every`` steps. Rerunning the same command after a kill resumes
-    from the latest checkpoint, exactly as ``train.train_and_evaluate`` does; a workdir
-    holding another sweep (config, data or hypers) is refused, naming what differs.
+    ``workdir`` receives ``config.json``, ``run.json`` (the kind of run and the data source),
+    ``hypers.json`` (the K settings), ``sweep.jsonl`` (per model, the mean training loss of
+    the finite steps of each ``train.log_every``) and orbax checkpoints of all K states under
+    ``checkpoints/`` every ``train.checkpoint_every`` steps. Rerunning the same command after
+    a kill resumes from the latest checkpoint, exactly as ``train.train_and_evaluate`` does;
+    a workdir holding another sweep (config, data, its train.txt or hypers) or a training
+    run is refused, naming what differs.
     """
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -128,7 +129,7 @@ def run_sweep(
     settings = hypers_to_json(hypers)
     check_run_kind(workdir, "sweep")
     if config_path.exists():
-        check_resume(config_path, run_path, config, data_source)
+        check_resume(config_path, run_path, config, data_source, "sweep")
     if hypers_path.exists() and json.loads(hypers_path.read_text()) != settings:
         raise ValueError(
             f"{hypers_path}: the workdir holds a sweep of other settings "

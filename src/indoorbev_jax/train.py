@@ -1,10 +1,10 @@
 """Training: one jitted step (augment -> forward -> match -> loss -> update), exact resume.
 
 ``train_and_evaluate(config, workdir)`` is what ``experiments/train.py`` runs. The run
-directory holds ``config.json``, ``run.json`` (the data source), ``metrics.jsonl`` (one JSON
-object a line), TensorBoard event files under ``tb/``, orbax checkpoints under
-``checkpoints/`` (the latest ``train.keep_checkpoints``) and ``best/`` (the best by
-validation ``metric``).
+directory holds ``config.json``, ``run.json`` (the kind of run and the data source),
+``metrics.jsonl`` (one JSON object a line), TensorBoard event files under ``tb/``, orbax
+checkpoints under ``checkpoints/`` (the latest ``train.keep_checkpoints``) and ``best/``
+(the best by validation ``metric``).
 
 Exact resume: the data of step s and every random key of step s are pure functions of
 (seed, s), and the state is restored bit for bit, so a run killed at any point and
@@ -817,6 +817,12 @@ def _describe_source(data: str | None) -> str:
 SPLIT_FILES = ("train.txt", "val.txt")
 
 
+def _elsewhere(kind: str) -> str:
+    if kind == "sweep":
+        return "sweep in another workdir"
+    return "train in another workdir (--init-from this one to start from its parameters)"
+
+
 def run_record(data: str | None, kind: str = "train") -> dict:
     """What ``run.json`` records: the kind of run ("train" or "sweep"), the data source (a
     folder, None for the simulator) and, for a folder, the sha256 of its split lists, so a
@@ -824,7 +830,7 @@ def run_record(data: str | None, kind: str = "train") -> dict:
     if data is None:
         return {"kind": kind, "data": None}
     splits = {}
-    for name in SPLIT_FILES:
+    for name in SPLIT_FILES[:1] if kind == "sweep" else SPLIT_FILES:  # a sweep reads train only
         path = Path(data) / name
         splits[name] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
     return {"kind": kind, "data": data, "splits": splits}
@@ -856,19 +862,23 @@ def _has_checkpoint(workdir: Path) -> bool:
     return folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())
 
 
-def check_resume(config_path: Path, run_path: Path, config: Config, data: str | None) -> None:
-    """Raises ``ValueError`` unless the run in ``config_path``'s folder may go on with
-    ``config`` and ``data`` (a resolved folder, or None for the simulator): only fields in
-    ``RESUME_MAY_CHANGE`` may differ (logged as a note), and the data source may not."""
+def check_resume(
+    config_path: Path, run_path: Path, config: Config, data: str | None, kind: str = "train"
+) -> None:
+    """Raises ``ValueError`` unless the run (``kind`` "train" or "sweep") in
+    ``config_path``'s folder may go on with ``config`` and ``data`` (a resolved folder, or
+    None for the simulator): only fields in ``RESUME_MAY_CHANGE`` may differ (logged as a
+    note), and the data source and the split lists it reads may not."""
     diff = config_diff(Config.from_dict(json.loads(config_path.read_text())), config)
     lines = {k: f"  {k}: {a!r} -> {b!r}" for k, (a, b) in diff.items()}
     refused = [line for k, line in lines.items() if k not in RESUME_MAY_CHANGE]
+    elsewhere = _elsewhere(kind)
     if refused:
         fresh = (
             "it has no checkpoint yet, so nothing was trained: remove its config.json and "
-            "run.json to start it afresh with these settings, or train in another workdir"
+            f"run.json to start it afresh with these settings, or {elsewhere}"
             if not _has_checkpoint(config_path.parent)
-            else "train in another workdir (--init-from this one to start from its parameters)"
+            else elsewhere
         )
         raise ValueError(
             f"{config_path}: the workdir holds a run with another config (saved -> given):\n"
@@ -888,14 +898,13 @@ def check_resume(config_path: Path, run_path: Path, config: Config, data: str | 
         )
     if data is None or "splits" not in record or not _has_checkpoint(run_path.parent):
         return  # the simulator, a run.json from before the digests, or nothing trained yet
-    now = run_record(data)["splits"]
+    now = run_record(data, kind)["splits"]
     for name, digest in record["splits"].items():
-        if now.get(name) != digest:
+        if name in now and now[name] != digest:
             raise ValueError(
                 f"{run_path}: {Path(data) / name} changed since the run started (sha256 "
-                f"{str(digest)[:12]} -> {str(now.get(name))[:12]}), so the resumed run would "
-                "read other frames or another order: restore the list, or train in another "
-                "workdir (--init-from this one to start from its parameters)"
+                f"{str(digest)[:12]} -> {str(now[name])[:12]}), so the resumed run would "
+                f"read other frames or another order: restore the list, or {elsewhere}"
             )
 
 
@@ -1040,7 +1049,13 @@ def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config
         config = Config.from_dict(json.loads(config_file.read_text()))
     except json.JSONDecodeError as e:
         raise ValueError(f"{config_file}: not valid JSON ({e})") from None
-    check_run_kind(workdir, "train")  # a sweep's checkpoints hold K stacked models
+    try:
+        check_run_kind(workdir, "train")
+    except ValueError:
+        raise ValueError(
+            f"{workdir}: a sweep's workdir: its checkpoints hold K stacked models, which "
+            "predict, export and --init-from cannot load as one model"
+        ) from None
     template = init_state(config, jax.random.key(0))
     # No best/ made where there is none (orbax creates the folder it is given).
     has_best = (workdir / "best").is_dir()
