@@ -225,13 +225,10 @@ def test_full_chain_is_deterministic_and_vmaps():
         np.testing.assert_array_equal(one.targets.masks, a.targets.masks[i])
 
 
-def test_objects_moved_out_of_sight_leave_the_targets():
-    """After the chain, every target has its centre in the grid, a footprint and a point;
-    a rotation carries the corner object out in some draws, never the central ones."""
-    frame = make_frame()
-    t = frame.targets
-    # Object 0 moves to the corner, 6.2 m from the sensor: most rotations take it out.
-    shift = jnp.array([4.4 - 1.5, 4.4 - 1.0, 0.0])
+def _move_object_0(frame, shift):
+    """``frame`` with object 0 and its points moved by ``shift`` (x, y, z), its targets
+    rebuilt from the labels (``make_targets``, as a dataset's)."""
+    t, shift = frame.targets, jnp.asarray(shift)
     pts = frame.points
     in_0 = aug.points_in_boxes(pts, t.pos, t.dims, t.yaw, t.valid)[0] & frame.point_valid
     pts = jnp.where(in_0[:, None], pts + jnp.append(shift, 0.0), pts)
@@ -239,7 +236,14 @@ def test_objects_moved_out_of_sight_leave_the_targets():
                           pos=np.asarray(t.pos[:3]) + np.stack([shift, 0 * shift, 0 * shift]),
                           yaw=np.asarray(t.yaw[:3]), occlusion=[0, 0, 0])  # fmt: skip
     targets = jax.tree.map(jnp.asarray, make_targets(labels, GRID, t.valid.shape[0]))
-    frame = Batch(points=pts, point_valid=frame.point_valid, targets=targets)
+    return Batch(points=pts, point_valid=frame.point_valid, targets=targets)
+
+
+def test_objects_moved_out_of_sight_leave_the_targets():
+    """After the chain, every target has its centre in the grid, a footprint and a point;
+    a rotation carries the corner object out in some draws, never the central ones."""
+    # Object 0 moves to the corner, 6.2 m from the sensor: most rotations take it out.
+    frame = _move_object_0(make_frame(), [4.4 - 1.5, 4.4 - 1.0, 0.0])
     cfg = dataclasses.replace(OFF, rotation=float(np.pi))
     keys = jax.random.split(jax.random.key(5), 64)
     out = jax.vmap(lambda k: aug.augment(k, frame, GRID, cfg))(keys)
@@ -398,18 +402,9 @@ def test_gt_sampling_pastes_nothing_behind_the_walls():
 def test_an_object_centred_off_the_grid_stays_a_target():
     """A dataset's sofa centred 0.3 m beyond the grid's edge, its footprint and points partly
     on the grid, is a target in validation (make_targets): training keeps it too."""
-    frame = make_frame()
-    t = frame.targets
-    shift = jnp.array([5.3 - 1.5, 0.0, 0.0])
-    pts = frame.points
-    in_0 = aug.points_in_boxes(pts, t.pos, t.dims, t.yaw, t.valid)[0] & frame.point_valid
-    pts = jnp.where(in_0[:, None], pts + jnp.append(shift, 0.0), pts)
-    labels = ObjectLabels(classes=np.asarray(t.classes[:3]), dims=np.asarray(t.dims[:3]),
-                          pos=np.asarray(t.pos[:3]) + np.stack([shift, 0 * shift, 0 * shift]),
-                          yaw=np.asarray(t.yaw[:3]), occlusion=[0, 0, 0])  # fmt: skip
-    targets = jax.tree.map(jnp.asarray, make_targets(labels, GRID, t.valid.shape[0]))
+    frame = _move_object_0(make_frame(), [5.3 - 1.5, 0.0, 0.0])
+    targets = frame.targets
     assert bool(targets.valid[0]) and bool(targets.masks[0].any())
-    frame = Batch(points=pts, point_valid=frame.point_valid, targets=targets)
     out = aug.augment(jax.random.key(0), frame, GRID, OFF)
     np.testing.assert_array_equal(out.targets.valid, targets.valid)
     np.testing.assert_array_equal(out.targets.masks, targets.masks)

@@ -60,18 +60,29 @@ class ConfigError(ValueError):
     """A configuration field holds a value that cannot work; the message names the field."""
 
 
-def _coerce(value: Any, hint) -> Any:
-    """``value`` of a field built in Python as the annotation ``hint`` asks: numpy numbers and
-    ints for floats accepted (as Python's), a list for a tuple; raises ``TypeError`` for
-    another type, ``NotImplementedError`` for an annotation it does not check."""
+_TRUE, _FALSE = ("true", "1"), ("false", "0")
+
+
+def _as_type(value: Any, hint, python: bool = False) -> Any:
+    """``value`` (decoded JSON, or the raw text where it is not JSON; with ``python``, a
+    value a section was built with in Python) as a value of the annotation ``hint``; raises
+    ``TypeError`` when it is not one, ``NotImplementedError`` for an annotation not checked.
+    Numpy numbers count as Python's, a list as a tuple."""
+    not_bool = not isinstance(value, bool | np.bool_)
     if hint is bool:
-        if isinstance(value, bool | np.bool_):
+        if python and not not_bool:
             return bool(value)
+        # Python's spelling (True) is not JSON, and the string 'False' would be truthy.
+        text = str(value).lower() if isinstance(value, bool | int | str) else None
+        if not python and text in _TRUE + _FALSE:
+            return text in _TRUE
     elif hint is int:
-        if isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_):
+        if not python and isinstance(value, float) and value.is_integer():
+            return int(value)
+        if isinstance(value, numbers.Integral) and not_bool:
             return int(value)
     elif hint is float:
-        if isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_):
+        if isinstance(value, numbers.Real) and not_bool:
             return float(value)
     elif hint is str:
         if isinstance(value, str):
@@ -79,13 +90,13 @@ def _coerce(value: Any, hint) -> Any:
     elif typing.get_origin(hint) is tuple:
         args = typing.get_args(hint)
         if isinstance(value, dict) and typing.get_origin(args[0]) is tuple:
-            value = tuple(value.items())  # {"Desk": "Table"} for (name, class) pairs
+            value = list(value.items())  # {"Desk": "Table"} for (name, class) pairs
         if isinstance(value, list | tuple):
             types = [args[0]] * len(value) if args[-1] is Ellipsis else list(args)
             if len(types) == len(value):
-                return tuple(_coerce(v, h) for v, h in zip(value, types, strict=True))
+                return tuple(_as_type(v, h, python) for v, h in zip(value, types, strict=True))
     else:
-        raise NotImplementedError(hint)
+        raise NotImplementedError(f"--set cannot parse fields of type {hint}")
     raise TypeError(value)
 
 
@@ -103,7 +114,7 @@ def _check_types(section, prefix: str, skip: tuple[str, ...] = ()) -> None:
             continue
         value, hint = getattr(section, field.name), _hints(type(section))[field.name]
         try:
-            fixed = _coerce(value, hint)
+            fixed = _as_type(value, hint, python=True)
         except NotImplementedError:
             continue
         except TypeError:
@@ -852,9 +863,6 @@ def flatten_dict(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-_TRUE, _FALSE = ("true", "1"), ("false", "0")
-
-
 def _describe(hint) -> str:
     if hint is bool:
         return "bool (true, false, 1 or 0)"
@@ -863,38 +871,6 @@ def _describe(hint) -> str:
     if typing.get_origin(typing.get_args(hint)[0]) is tuple:
         return f"{hint} as a JSON list of pairs or a JSON object"
     return f"{hint} as a JSON list"
-
-
-def _as_type(value: Any, hint) -> Any:
-    """``value`` (decoded JSON, or the raw text where it is not JSON) as a value of the
-    annotation ``hint``; raises ``TypeError`` when it is not one."""
-    if hint is bool:
-        # Python's spelling (True) is not JSON, and the string 'False' would be truthy.
-        text = str(value).lower() if isinstance(value, bool | int | str) else None
-        if text in _TRUE + _FALSE:
-            return text in _TRUE
-    elif hint is int:
-        if isinstance(value, float) and value.is_integer():
-            return int(value)
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-    elif hint is float:
-        if isinstance(value, int | float) and not isinstance(value, bool):
-            return float(value)
-    elif hint is str:
-        if isinstance(value, str):
-            return value
-    elif typing.get_origin(hint) is tuple:
-        args = typing.get_args(hint)
-        if isinstance(value, dict) and typing.get_origin(args[0]) is tuple:
-            value = list(value.items())  # {"Desk": "Table"} for (name, class) pairs
-        if isinstance(value, list | tuple):
-            types = [args[0]] * len(value) if args[-1] is Ellipsis else list(args)
-            if len(types) == len(value):
-                return tuple(_as_type(v, h) for v, h in zip(value, types, strict=True))
-    else:
-        raise NotImplementedError(f"--set cannot parse fields of type {hint}")
-    raise TypeError(value)
 
 
 def with_overrides(config: Config, items: list[str] | tuple[str, ...]) -> Config:
