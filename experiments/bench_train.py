@@ -17,7 +17,7 @@ import time
 
 import jax
 
-from indoorbev_jax.cli import positive_int
+from indoorbev_jax.cli import nonnegative_int, positive_int
 from indoorbev_jax.config import Config
 from indoorbev_jax.sweep import init_sweep, make_sweep_step, stack_hypers
 from indoorbev_jax.train import Hyper, init_state, jit_train_step, make_train_step
@@ -80,7 +80,8 @@ def main(argv=None) -> None:
                    choices=("paper", "small", "tiny"))  # fmt: skip
     p.add_argument("--steps", type=positive_int, default=10)
     p.add_argument("--batch-size", type=positive_int, default=None)
-    p.add_argument("--sweep-k", type=positive_int, default=4)
+    p.add_argument("--sweep-k", type=nonnegative_int, default=4,
+                   help="K vmapped models against K sequential (0 or 1: none)")  # fmt: skip
     args = p.parse_args(argv)
     print(f"devices: {jax.devices()}")
     for name in args.presets:

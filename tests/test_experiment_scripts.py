@@ -406,6 +406,7 @@ def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
         ("bench_lidar", ["--thread-sizes", "20k"], "--thread-sizes: expected ray counts"),
         ("bench_datagen", ["--ref-frames", "9"], "--ref-frames 9: at most --batch (8) frames"),
         ("bench_train", ["--steps", "0"], "argument --steps: must be > 0, got 0"),
+        ("bench_train", ["--sweep-k", "-1"], "argument --sweep-k: must be >= 0, got -1"),
         ("bench_views", ["--reps", "0"], "argument --reps: must be > 0, got 0"),
         ("bench_model", ["--only", "jax", "--set", "head.nope=1"], "head has no field 'nope'"),
         ("bench_metrics", ["--eval-frames", "1"], "--eval-frames 1: at least --eval-batch 4"),
