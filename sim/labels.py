@@ -38,7 +38,7 @@ from indoorbev_sim.scenes import Scene, SceneTemplate, world_prims
 
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data.rasterize import BOUNDARY_EPS
-from indoorbev_jax.geometry import cell_centers, wrap_angle
+from indoorbev_jax.geometry import cell_centers, on_grid, wrap_angle
 
 VISIBLE_FULL, VISIBLE_PART = 0.75, 0.4  # visibility thresholds of occlusion levels 0 and 1
 
@@ -285,10 +285,7 @@ def object_labels(
     seen = (vis_slot.reshape(s, -1) == own) & prim_on  # [S, P]
     visibility = seen.sum(-1) / jnp.maximum(prim_on.sum(-1), 1)
     pos, dims, yaw = box_labels(tpl, scene, time, origin, heading)
-    inside = (
-        (pos[:, 0] >= grid.x_range[0]) & (pos[:, 0] <= grid.x_range[1])
-        & (pos[:, 1] >= grid.y_range[0]) & (pos[:, 1] <= grid.y_range[1])
-    )  # fmt: skip
+    inside = on_grid(pos[:, 0], pos[:, 1], grid)
     labelled = scene.on & inside & (counts >= config.sim.min_points)
     return ObjectLabels(
         classes=jnp.asarray(tpl.slot_class),

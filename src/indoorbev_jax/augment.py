@@ -16,7 +16,7 @@ from flax import struct
 
 from indoorbev_jax.config import AugmentConfig, GridConfig
 from indoorbev_jax.data.rasterize import instance_ids_from_masks
-from indoorbev_jax.geometry import cell_centers, cell_index, in_workspace, wrap_angle
+from indoorbev_jax.geometry import cell_centers, cell_index, in_workspace, on_grid, wrap_angle
 from indoorbev_jax.types import Batch, Targets
 
 # Points this close outside a box still belong to it (lidar hits lie on its surface).
@@ -480,11 +480,7 @@ def _object_points(frame: Batch) -> jax.Array:
 
 
 def _centre_in(t: Targets, grid: GridConfig) -> jax.Array:
-    x, y = t.pos[:, 0], t.pos[:, 1]
-    return (
-        (x >= grid.x_range[0]) & (x <= grid.x_range[1])
-        & (y >= grid.y_range[0]) & (y <= grid.y_range[1])
-    )  # fmt: skip
+    return on_grid(t.pos[:, 0], t.pos[:, 1], grid)
 
 
 def drop_lost_objects(

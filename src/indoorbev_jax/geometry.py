@@ -22,17 +22,21 @@ def wrap_angle(a):
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
-def in_workspace(xyz, grid: GridConfig):
-    """bool [...]: points ``xyz [..., 3+]`` inside the workspace; NaN is outside."""
-    x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
+def on_grid(x, y, grid: GridConfig):
+    """bool [...]: (x, y) inside the grid's closed x and y ranges; NaN is outside (numpy or
+    JAX arrays)."""
     return (
         (x >= grid.x_range[0])
         & (x <= grid.x_range[1])
         & (y >= grid.y_range[0])
         & (y <= grid.y_range[1])
-        & (z >= grid.z_range[0])
-        & (z <= grid.z_range[1])
     )
+
+
+def in_workspace(xyz, grid: GridConfig):
+    """bool [...]: points ``xyz [..., 3+]`` inside the workspace; NaN is outside."""
+    z = xyz[..., 2]
+    return on_grid(xyz[..., 0], xyz[..., 1], grid) & (z >= grid.z_range[0]) & (z <= grid.z_range[1])
 
 
 def cell_centers(grid: GridConfig) -> tuple[jax.Array, jax.Array]:
@@ -58,13 +62,7 @@ def cell_index(x: jax.Array, y: jax.Array, grid: GridConfig):
     h, w = grid.shape
     col = jnp.floor((x - grid.x_range[0]) / grid.cell_size).astype(jnp.int32)
     row = jnp.floor((y - grid.y_range[0]) / grid.cell_size).astype(jnp.int32)
-    inside = (
-        (x >= grid.x_range[0])
-        & (x <= grid.x_range[1])
-        & (y >= grid.y_range[0])
-        & (y <= grid.y_range[1])
-    )
-    return jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1), inside
+    return jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1), on_grid(x, y, grid)
 
 
 def box_corners(xy, lw, yaw) -> np.ndarray:

@@ -7,7 +7,7 @@ from PIL import Image, ImageDraw
 
 from indoorbev_jax.config import GridConfig
 from indoorbev_jax.data import kitti
-from indoorbev_jax.geometry import box_corners
+from indoorbev_jax.geometry import box_corners, on_grid
 
 PALETTE = np.array(
     [[230, 25, 75], [60, 180, 75], [255, 225, 25], [0, 130, 200], [245, 130, 48],
@@ -70,11 +70,7 @@ def render_bev(
     # showed as a false one at the 5 m edge.
     points = np.asarray(points)
     if len(points):
-        x, y = points[:, 0], points[:, 1]
-        with np.errstate(invalid="ignore"):  # NaN compares False: not drawn
-            on_grid = (x >= grid.x_range[0]) & (x <= grid.x_range[1])
-            on_grid &= (y >= grid.y_range[0]) & (y <= grid.y_range[1])
-        points = points[on_grid]
+        points = points[on_grid(points[:, 0], points[:, 1], grid)]  # NaN is off the grid
     if len(points):
         pts = points[np.argsort(points[:, 2])]  # higher points drawn last, on top
         u, r = px(pts[:, 0], pts[:, 1])
