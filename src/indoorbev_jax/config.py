@@ -68,9 +68,9 @@ def _as_type(value: Any, hint, python: bool = False) -> Any:
     value a section was built with in Python) as a value of the annotation ``hint``; raises
     ``TypeError`` when it is not one, ``NotImplementedError`` for an annotation not checked.
     Numpy numbers count as Python's, a list as a tuple."""
-    not_bool = not isinstance(value, bool | np.bool_)
+    is_bool = isinstance(value, bool | np.bool_)
     if hint is bool:
-        if python and not not_bool:
+        if python and is_bool:
             return bool(value)
         # Python's spelling (True) is not JSON, and the string 'False' would be truthy.
         text = str(value).lower() if isinstance(value, bool | int | str) else None
@@ -79,10 +79,10 @@ def _as_type(value: Any, hint, python: bool = False) -> Any:
     elif hint is int:
         if not python and isinstance(value, float) and value.is_integer():
             return int(value)
-        if isinstance(value, numbers.Integral) and not_bool:
+        if isinstance(value, numbers.Integral) and not is_bool:
             return int(value)
     elif hint is float:
-        if isinstance(value, numbers.Real) and not_bool:
+        if isinstance(value, numbers.Real) and not is_bool:
             return float(value)
     elif hint is str:
         if isinstance(value, str):

@@ -574,7 +574,7 @@ def _check_layout(folder: Path, stored, abstract) -> None:
         f"{folder}: holds {sum(have.values())} arrays, this run's state has "
         f"{sum(want.values())}, and they differ (e.g. stored {extra}, expected {missing}): "
         "the workdir holds another kind of run (a sweep's K stacked models, or a model of "
-        "another config or code version). Nothing was changed; train in another workdir"
+        "another config or code version). Nothing was changed; use another workdir"
     )
 
 
@@ -840,18 +840,33 @@ def run_record(data: str | None, kind: str = "train") -> dict:
 _KIND_FILES = {"train": ("metrics.jsonl", "best"), "sweep": ("hypers.json", "sweep.jsonl")}
 
 
+def _read_run_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e})") from None
+
+
+def _other_kind(workdir: Path, kind: str) -> str | None:
+    """What says ``workdir`` holds the other kind of run than ``kind`` ("train" or
+    "sweep"), or None: run.json's kind, or for a run.json from before it named one, the
+    files only the other kind writes."""
+    other = "sweep" if kind == "train" else "train"
+    run_path = workdir / "run.json"
+    recorded = _read_run_json(run_path).get("kind") if run_path.exists() else None
+    if recorded:
+        return f"run.json says {other!r}" if recorded == other else None
+    found = [name for name in _KIND_FILES[other] if (workdir / name).exists()]
+    return f"it has {found[0]}" if found else None
+
+
 def check_run_kind(workdir: Path, kind: str) -> None:
     """Raises ``ValueError`` when ``workdir`` holds the other kind of run (a training run
     for a sweep, or a sweep for training): with the same config and data the resume checks
     passed, and the first checkpoint save deleted the other run's checkpoints."""
-    other = "sweep" if kind == "train" else "train"
-    run_path = workdir / "run.json"
-    recorded = json.loads(run_path.read_text()).get("kind") if run_path.exists() else None
-    # run.json's kind decides; the files only for a run.json from before it named one.
-    found = [] if recorded else [name for name in _KIND_FILES[other] if (workdir / name).exists()]
-    if recorded == other or found:
-        what = f"run.json says {other!r}" if recorded == other else f"it has {found[0]}"
-        held, verb = ("a sweep", "train") if other == "sweep" else ("a training run", "sweep")
+    what = _other_kind(workdir, kind)
+    if what:
+        held, verb = ("a sweep", "train") if kind == "train" else ("a training run", "sweep")
         raise ValueError(f"{workdir}: holds {held} ({what}); {verb} in another workdir")
 
 
@@ -889,7 +904,7 @@ def check_resume(
         log.info("note: resuming with (saved -> given):\n%s", "\n".join(lines.values()))
     if not run_path.exists():  # a run from before run.json was kept: nothing to compare
         return
-    record = json.loads(run_path.read_text())
+    record = _read_run_json(run_path)
     saved = record["data"]
     if saved != data:
         raise ValueError(
@@ -1049,13 +1064,11 @@ def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config
         config = Config.from_dict(json.loads(config_file.read_text()))
     except json.JSONDecodeError as e:
         raise ValueError(f"{config_file}: not valid JSON ({e})") from None
-    try:
-        check_run_kind(workdir, "train")
-    except ValueError:
+    if _other_kind(workdir, "train"):
         raise ValueError(
             f"{workdir}: a sweep's workdir: its checkpoints hold K stacked models, which "
             "predict, export and --init-from cannot load as one model"
-        ) from None
+        )
     template = init_state(config, jax.random.key(0))
     # No best/ made where there is none (orbax creates the folder it is given).
     has_best = (workdir / "best").is_dir()
