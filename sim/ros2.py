@@ -249,9 +249,7 @@ def publish(
                     print(f"indoorbev-sim ros2 publish: recorded into {recorder.close()}",
                           flush=True)  # fmt: skip
                 except RuntimeError as e:  # the node still stops and reports
-                    recording_failed = (
-                        f"{e}; {recorder.counts} messages were written, into {recorder.partial}"
-                    )
+                    recording_failed = str(e)
             runtime.stop_node(node, context)
     achieved = (sent - 1) / (last - first) if sent > 1 and last > first else 0.0
     summary = {"frames": sent, "rate_hz": round(achieved, 2), "late": late}

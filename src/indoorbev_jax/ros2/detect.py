@@ -259,9 +259,8 @@ def silence_hint(
     if reliable and reliable_publishers:
         # QoS matches: the publisher is idle (a driver starting, a lidar not spinning yet).
         return (
-            hint
-            + f"{reliable_publishers} of them reliable, so QoS is not the cause: "
-            + ("they have sent nothing yet")
+            hint + f"{reliable_publishers} of them reliable, so QoS is not the cause: "
+            "they have sent nothing yet"
         )
     if reliable:
         return hint + "--reliable needs a reliable publisher (ros2 topic info -v shows its QoS)"
@@ -342,7 +341,6 @@ def run_detect_node(
     stats, lock, wake, stop = _Stats(), threading.Lock(), threading.Event(), threading.Event()
     mailbox: list = []  # at most one (raw cloud, receive time ns)
     failure: list[BaseException] = []
-    recording_stopped: list[str] = []  # the recorder's error, once its writer failed
     started = time.monotonic()
 
     def on_cloud(raw: bytes) -> None:
@@ -365,6 +363,7 @@ def run_detect_node(
     def process_forever() -> None:
         last_log = time.monotonic()
         silence_checked = False
+        recording_stopped = False  # the writer failed: detection goes on unrecorded
         while not stop.is_set():
             if not wake.wait(0.1):
                 if not silence_checked and time.monotonic() - started > SILENCE_S:
@@ -398,7 +397,7 @@ def run_detect_node(
                 for k, message in result.outputs.items():
                     ok = ok and recorder.write(bag_names[k], result.stamp, message)
                 if not ok:
-                    recording_stopped.append(recorder.error)
+                    recording_stopped = True
                     log.error(f"{recorder.error}; detection goes on unrecorded")
             with lock:
                 stats.processed += 1
@@ -468,9 +467,7 @@ def run_detect_node(
                     print(f"indoorbev ros2 detect: recorded {recorder.counts} into {path}",
                           flush=True)  # fmt: skip
                 except RuntimeError as e:  # the node still stops and reports
-                    recording_failed = (
-                        f"{e}; {recorder.counts} messages were written, into {recorder.partial}"
-                    )
+                    recording_failed = str(e)
             runtime.stop_node(node, context)
     if failure:
         raise RuntimeError("the inference worker failed") from failure[0]

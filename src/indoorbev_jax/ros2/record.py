@@ -114,12 +114,16 @@ class BagRecorder:
 
     def close(self) -> Path:
         """Writes what is queued, finishes the bag and moves it under its final name; a
-        ``RuntimeError`` when the writer failed (what it wrote stays in ``partial``)."""
+        ``RuntimeError`` when the writer failed, naming what it wrote and where (``partial``,
+        kept)."""
         if not self._closed:
             self._closed = True
             self._queue.put(None)
             self._thread.join()
-            self._raise()
+            if self._error is not None:
+                raise RuntimeError(
+                    f"{self.error}; {self.counts} messages were written, into {self._partial}"
+                ) from self._error
             os.replace(self._partial / self.path.name, self.path)
             self._partial.rmdir()
         return self.path
