@@ -974,3 +974,11 @@ def test_a_sweep_resumes_after_val_txt_changes(data, tmp_path):
     (folder / "train.txt").write_text("000001\n")
     with pytest.raises(ValueError, match=r"train\.txt changed .* or sweep in another workdir$"):
         T.check_resume(workdir / "config.json", workdir / "run.json", CFG, str(folder), "sweep")
+
+
+def test_a_malformed_run_json_is_named_not_taken_for_a_sweep(tmp_path):
+    (tmp_path / "config.json").write_text(CFG.to_json())
+    (tmp_path / "run.json").write_text('{"kind": "tr')  # cut off
+    for call in (lambda: T.load_params(tmp_path), lambda: T.check_run_kind(tmp_path, "train")):
+        with pytest.raises(ValueError, match=r"run\.json: not valid JSON"):
+            call()
