@@ -794,3 +794,35 @@ def test_evaluator_takes_targets_as_a_dict_like_set_loss():
     with pytest.raises(TypeError, match=r"targets: missing \['instance_ids'\]"):
         Evaluator().add(preds, {f.name: getattr(targets, f.name) for f in dc.fields(targets)
                                 if f.name != "instance_ids"})  # fmt: skip
+
+
+def test_a_refused_frame_or_batch_leaves_the_evaluator_as_it_was():
+    """add_frame kept a frame's AP half when the panoptic check refused it, and add_output
+    kept the frames before a refused one, so AP and PQ covered different frame sets."""
+    rng = np.random.default_rng(8)
+    ev = Evaluator(InferenceConfig(score_threshold=0.3))
+    targets = random_targets(rng)
+    logits = 3 * rng.standard_normal((2, B, Q, NUM_CLASSES + 1), np.float32)
+    preds = predictions_from(logits, 4 * rng.standard_normal((2, B, Q, H, W), np.float32) - 1)
+    ev.add(preds, targets)
+    before = ev.compute()
+    out = jax.tree.map(np.asarray, panoptic_inference(preds, ev.inference))
+    bad_ids = out.instance_ids.copy()
+    bad_ids[B - 1, 0, 0] = out.instance_classes.shape[1]  # an id with no class entry
+    with pytest.raises(ValueError, match=rf"preds\[{2 * B - 1}\]"):
+        ev.add_output(out.replace(instance_ids=bad_ids), targets)
+    m = np.zeros((1, H, W), bool)
+    m[0, :2, :2] = True
+    ids = m[0].astype(np.int32)
+    frame = dict(gt=(m, np.array([0])), det=(m, np.array([0]), np.array([0.9])),
+                 gt_panoptic=(ids, np.array([NUM_CLASSES, 0])),
+                 pred_panoptic=(ids, np.array([NUM_CLASSES])))  # fmt: skip
+    with pytest.raises(ValueError, match=rf"preds\[{B}\]"):
+        ev.add_frame(**frame)
+    np.testing.assert_equal(ev.compute(), before)
+    # Counts that disagree are named as mask_ap names them, not a bare IndexError.
+    with pytest.raises(ValueError, match=rf"gts\[{B}\]: expected masks \[M, H, W\] and classes"):
+        ev.add_frame(**dict(frame, gt=(m, np.array([0, 1]))))
+    with pytest.raises(ValueError, match=rf"dets\[{B}\]: expected masks \[D, H, W\]"):
+        ev.add_frame(**dict(frame, det=(m, np.array([0]), np.array([0.9, 0.8]))))
+    np.testing.assert_equal(ev.compute(), before)

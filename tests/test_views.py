@@ -123,7 +123,7 @@ def _fuse_reference(pred, mask_threshold, iou_threshold):
                     if not free[j]:
                         continue
                     iou = (pr[i] & pr[j]).sum() / (pr[i] | pr[j]).sum()
-                    if iou >= best_iou and (best is None or iou > best_iou):
+                    if iou > 0 and iou >= best_iou and (best is None or iou > best_iou):
                         best, best_iou = j, iou
                 if best is not None:
                     members.append(best)
@@ -161,6 +161,26 @@ def test_fuse_views_matches_loop_rederivation(spread):
         np.testing.assert_allclose(
             np.asarray(getattr(fused, name)[0])[lead], ref[name][lead], atol=1e-4, err_msg=name
         )
+
+
+def test_an_empty_or_disjoint_mask_joins_no_cluster_at_view_iou_0():
+    """An IoU of 0 passed a view_iou of 0: an empty mask joined the cluster, added its class
+    probability and halved the mask probability, so the leader's 9-cell object vanished."""
+    v, q, h, w = 2, 2, 6, 6
+    logits = np.full((v, 1, 1, q, K), -5.0, np.float32)
+    masks = np.full((v, 1, 1, q, h, w), -10.0, np.float32)
+    logits[0, ..., 0, 0], masks[0, ..., 0, :3, :3] = 5.0, 5.0  # view 0: the object
+    logits[1, ..., 0, 0] = 5.0  # view 1: the same class with an empty mask
+    logits[1, ..., 1, 0], masks[1, ..., 1, 4:, 4:] = 5.0, 5.0  # view 1: the class elsewhere
+    zeros = lambda *s: jnp.zeros((v, 1, 1, q) + s)  # noqa: E731
+    pred = Predictions(logits=jnp.asarray(logits), masks=jnp.asarray(masks),
+                       dims=zeros(3), pos=zeros(3), yaw=zeros(1))  # fmt: skip
+    alone = float(jax.nn.softmax(logits[0, 0, 0, 0])[0]) / v  # no other view's member
+    for view_iou in (0.0, 0.5):
+        fused = fuse_views(pred, 0.5, view_iou)
+        fg = float(jax.nn.softmax(fused.logits[0, 0, 0])[0])
+        assert fg == pytest.approx(alone, rel=1e-5), view_iou
+        assert int((fused.masks[0, 0, 0] >= 0).sum()) == 9, view_iou
 
 
 def test_identical_views_fuse_to_the_plain_inference():

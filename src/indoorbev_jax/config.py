@@ -475,7 +475,8 @@ class InferenceConfig:
 
     ``views``: the model runs on each of these symmetries of the cloud (``VIEWS``) and the
     outputs are fused (``inference.apply_views``); ``("identity",)`` is the plain forward.
-    ``view_iou``: least mask IoU for two views' queries to be one object.
+    ``view_iou``: least mask IoU for two views' queries to be one object (they must overlap,
+    so 0 means any overlap).
     """
 
     score_threshold: float = 0.8

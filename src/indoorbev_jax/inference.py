@@ -186,7 +186,7 @@ def panoptic_inference(
 # The model runs on mirrored and rotated copies of the cloud (``config.VIEWS``); each copy's
 # queries are mapped back to the lidar frame and the V * Q queries fused into one set: greedy
 # in descending detection score, a query leads a cluster of the best-overlapping free query
-# of every view (mask IoU >= view_iou); the cluster's class probabilities are the views'
+# of every view (mask IoU >= view_iou and > 0); the cluster's class probabilities are the views'
 # mean (a view without a member counts as background) and its mask probability the members'
 # mean. Fused sets are padded with empty queries, so shapes stay static ([B, V * Q, ...]).
 # docs/METRICS.md "Test-time views" has the full definition.
@@ -264,7 +264,10 @@ def _fuse_frame(logits, masks, dims, pos, yaw, *, views, mask_threshold, iou_thr
         i = jnp.argmax(jnp.where(free, score, -2.0))
         active = free[i] & (score[i] >= 0)
         # The leader itself is its view's member; elsewhere the best free overlap per view.
-        overlap = jnp.where(free & (iou[i] >= iou_threshold), iou[i], -1.0).at[i].set(2.0)
+        # Members must overlap the leader: at view_iou 0 an IoU of 0 (an empty or disjoint
+        # mask) would pass.
+        joins = free & (inter[i] > 0) & (iou[i] >= iou_threshold)
+        overlap = jnp.where(joins, iou[i], -1.0).at[i].set(2.0)
         overlap = overlap.reshape(views, q)
         best = jnp.argmax(overlap, 1) + jnp.arange(views) * q  # [V]
         member = jnp.zeros(p, bool).at[best].set(overlap.max(1) >= 0) & active

@@ -18,6 +18,7 @@ when no class has any); the other metrics use NaN. ``format_table`` prints both 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from collections.abc import Mapping, Sequence
@@ -109,7 +110,8 @@ def _no_masks_as_3d(masks: np.ndarray, other: np.ndarray) -> np.ndarray:
     return masks.reshape((0, *other.shape[1:]) if other.ndim == 3 else (0, 0, 0))
 
 
-def _ap_frame(gt, det, index: int, num_classes: int) -> _APFrame:
+def _frame_arrays(gt, det, index: int):
+    """A frame's ``(gt, det)`` as numpy arrays, empty mask lists as [0, H, W], shapes checked."""
     gt_masks, gt_classes = (np.asarray(x) for x in gt)
     det_masks, det_classes, det_scores = (np.asarray(x) for x in det)
     gt_masks, det_masks = _no_masks_as_3d(gt_masks, det_masks), _no_masks_as_3d(det_masks, gt_masks)
@@ -129,6 +131,11 @@ def _ap_frame(gt, det, index: int, num_classes: int) -> _APFrame:
             f"frame {index}: detection masks are {det_masks.shape[1:]} but ground truth masks "
             f"are {gt_masks.shape[1:]}"
         )
+    return (gt_masks, gt_classes), (det_masks, det_classes, det_scores)
+
+
+def _ap_frame(gt, det, index: int, num_classes: int) -> _APFrame:
+    (gt_masks, gt_classes), (det_masks, det_classes, det_scores) = _frame_arrays(gt, det, index)
     if not np.all(np.isfinite(det_scores)):
         raise ValueError(f"dets[{index}]: scores must be finite, got {det_scores}")
     _check_classes(f"gts[{index}]", gt_classes, num_classes)
@@ -751,20 +758,31 @@ class Evaluator:
                 raise ValueError(
                     f"{_tags_name(name)}: expected shape {classes.shape} (targets), got {t.shape}"
                 )
-        for i in range(classes.shape[0]):
-            dv = out["det_valid"][i]
-            self.add_frame(
-                gt=(masks[i][valid[i]], classes[i][valid[i]]),
-                det=(out["det_masks"][i][dv], out["det_classes"][i][dv], out["det_scores"][i][dv]),
-                gt_panoptic=(
-                    ids[i],
-                    np.concatenate(
-                        [[self.num_classes], np.where(valid[i], classes[i], self.num_classes)]
-                    ),
+        # All B frames or none: a refused frame i must not leave frames 0..i-1 behind.
+        kept = (len(self._ap_frames), len(self._gt_tags), copy.deepcopy(self._panoptic))
+        try:
+            for i in range(classes.shape[0]):
+                self._add_batch_frame(i, out, masks, classes, valid, ids, tags)
+        except Exception:
+            del self._ap_frames[kept[0] :], self._gt_tags[kept[1] :]
+            self._panoptic = kept[2]
+            raise
+
+    def _add_batch_frame(self, i, out, masks, classes, valid, ids, tags) -> None:
+        """``add_frame`` of frame i of ``add_output``'s arrays."""
+        dv = out["det_valid"][i]
+        self.add_frame(
+            gt=(masks[i][valid[i]], classes[i][valid[i]]),
+            det=(out["det_masks"][i][dv], out["det_classes"][i][dv], out["det_scores"][i][dv]),
+            gt_panoptic=(
+                ids[i],
+                np.concatenate(
+                    [[self.num_classes], np.where(valid[i], classes[i], self.num_classes)]
                 ),
-                pred_panoptic=(out["instance_ids"][i], out["instance_classes"][i]),
-                gt_tags=None if tags is None else {k: t[i][valid[i]] for k, t in tags.items()},
-            )
+            ),
+            pred_panoptic=(out["instance_ids"][i], out["instance_classes"][i]),
+            gt_tags=None if tags is None else {k: t[i][valid[i]] for k, t in tags.items()},
+        )
 
     def add_frame(self, gt, det, gt_panoptic, pred_panoptic, gt_tags=None) -> None:
         """Adds one frame given as numpy masks (the formats of ``mask_ap``/``panoptic_quality``).
@@ -781,11 +799,10 @@ class Evaluator:
           gt_tags: optional int [M], a group id >= 0 per ground truth for ``tag_confusion``,
             or a dict of them by grouping name.
         """
-        gm, gc = (np.asarray(x) for x in gt)
-        dm, dc, ds = (np.asarray(x) for x in det)
+        index = self.num_frames
+        (gm, gc), (dm, dc, ds) = _frame_arrays(gt, det, index)
         g_keep = gm.reshape(len(gm), math.prod(gm.shape[1:])).any(1)  # [M]
         d_keep = dm.reshape(len(dm), math.prod(dm.shape[1:])).any(1)  # [D]
-        index = self.num_frames
         gt_tags = _tag_groupings(gt_tags)
         for name, tags in (gt_tags or {}).items():
             tags = tags.astype(np.int64)
@@ -794,11 +811,13 @@ class Evaluator:
                     f"frame {index}: {_tags_name(name)} must be {gc.shape[0]} ids >= 0, got {tags}"
                 )
             gt_tags[name] = tags[g_keep]
-        self._ap_frames.append(
-            _ap_frame((gm[g_keep], gc[g_keep]), (dm[d_keep], dc[d_keep], ds[d_keep]), index,
-                      self.num_classes)
-        )  # fmt: skip
+        # Every check runs before any state changes (the panoptic add checks, then adds), so
+        # a refused frame leaves no part behind.
+        ap_frame = _ap_frame(
+            (gm[g_keep], gc[g_keep]), (dm[d_keep], dc[d_keep], ds[d_keep]), index, self.num_classes
+        )
         self._panoptic.add(gt_panoptic, pred_panoptic, index)
+        self._ap_frames.append(ap_frame)
         self._gt_tags.append(gt_tags)
 
     def compute(self) -> dict:
