@@ -473,3 +473,15 @@ def test_bad_inputs_raise(batch):
         set_loss(dataclasses.replace(preds, masks=preds.masks[..., :8]), targets, WEIGHTS)
     with pytest.raises(ValueError, match="num_mask_points"):
         set_loss(preds, targets, WEIGHTS, SAMPLED)
+    # A valid target of class >= K - 1 gave a NaN loss (K - 1: trained as background).
+    k = preds.logits.shape[-1]
+    b, m = np.argwhere(np.asarray(targets.valid))[0]
+    for bad in (k - 1, k, -1):
+        classes = np.asarray(targets.classes).copy()
+        classes[b, m] = bad
+        with pytest.raises(ValueError, match=rf"targets.classes\[{b}, {m}\] = {bad} .*0..{k - 2}"):
+            set_loss(preds, dataclasses.replace(targets, classes=jnp.asarray(classes)), WEIGHTS)
+    # Padded slots may hold any class.
+    classes = np.where(np.asarray(targets.valid), np.asarray(targets.classes), k + 5)
+    padded = dataclasses.replace(targets, classes=jnp.asarray(classes))
+    assert set_loss(preds, padded, WEIGHTS)[0] == set_loss(preds, targets, WEIGHTS)[0]

@@ -84,6 +84,13 @@ def test_no_targets_gives_empty_indices():
     assert query_idx.shape == target_idx.shape == (2, 0)
 
 
+def test_no_queries_leaves_every_target_unmatched():
+    """Q = 0 was a gather error; as with more valid targets than queries, each gets -1."""
+    query_idx, target_idx = _match(jnp.zeros((2, 0, 3)), jnp.ones((2, 3), bool))
+    np.testing.assert_array_equal(query_idx, np.full((2, 3), -1))
+    np.testing.assert_array_equal(target_idx, np.tile(np.arange(3), (2, 1)))
+
+
 def test_clean_cost_scales_only_frames_past_the_bound():
     cost = jnp.array([[[1.0, -50.0], [np.inf, 3.0]], [[4e6, 1.0], [np.nan, -np.inf]]])
     cleaned = np.asarray(clean_cost(cost))

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from indoorbev_jax import matching
 from indoorbev_jax.config import LossConfig
@@ -106,6 +107,17 @@ def _check_inputs(predictions: Predictions, targets: Targets) -> None:
             raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
     if m > q:
         raise ValueError(f"targets hold M={m} slots but predictions only Q={q} queries")
+    classes, valid = targets.classes, targets.valid
+    if not isinstance(classes, jax.core.Tracer) and not isinstance(valid, jax.core.Tracer):
+        # Outside jit: a class id >= K - 1 made the loss NaN (K - 1 trained as background).
+        k = predictions.logits.shape[-1]
+        bad = np.asarray(valid, bool) & ((np.asarray(classes) < 0) | (np.asarray(classes) >= k - 1))
+        if bad.any():
+            fb, fm = (int(i[0]) for i in np.nonzero(bad))
+            raise ValueError(
+                f"targets.classes[{fb}, {fm}] = {int(np.asarray(classes)[fb, fm])} is a valid "
+                f"target's class outside 0..{k - 2} (logits have K = {k}, K - 1 = background)"
+            )
 
 
 # Mask logits are clipped to this: at +-inf the focal terms give inf - inf and inf * 0 (NaN
@@ -290,7 +302,8 @@ def set_loss(
         dtype, losses are float32.
       targets: ``Targets`` (or a dict of its fields, ``instance_ids`` optional): classes
         [B, M], dims/pos [B, M, 3], yaw [B, M], valid [B, M], masks bool [B, M, H, W].
-        Frames without targets are fine, and so is M = 0.
+        Frames without targets are fine, and so is M = 0. Valid targets' classes lie in
+        0..K-2 (checked when the targets are concrete, not under jit).
       weights: ``{"cls", "dice", "focal", "dims", "pos", "yaw"}`` loss weights, as
         ``LossConfig.weights()`` gives, optionally ``"background"`` (else
         ``config.background_weight``). Python floats or (traced) scalar arrays, so a sweep

@@ -48,10 +48,12 @@ def clean_cost(cost: jax.Array, valid: jax.Array | None = None) -> jax.Array:
         set a frame's scale.
 
     Returns:
-      float32 of the same shape, every entry in [-COST_CAP, COST_CAP]: NaN and +Inf become
-      ``COST_CAP`` (a pair to avoid), -Inf becomes ``-COST_CAP``. A frame whose largest
-      finite |cost| exceeds ``COST_CAP / (2 (M + 1))`` has its finite entries divided by the
-      least power of two that brings it under that bound; any other frame's are unchanged.
+      float32 of the same shape: NaN and +Inf become ``COST_CAP`` (a pair to avoid), -Inf
+      becomes ``-COST_CAP``. A frame whose largest finite |cost| of a valid target exceeds
+      ``COST_CAP / (2 (M + 1))`` has its finite entries divided by the least power of two
+      that brings it under that bound; any other frame's are unchanged. So every entry of a
+      valid target lies in [-COST_CAP, COST_CAP]; a padded target's finite entries are only
+      rescaled with their frame (``match`` ignores them).
     """
     cost = cost.astype(jnp.float32)
     m = cost.shape[-1]
@@ -143,15 +145,14 @@ def match(cost: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
     # The solver's while loops are not reverse-differentiable and the indices are piecewise
     # constant anyway: stopping the gradient here keeps jax.grad of the loss well defined.
     cost = jax.lax.stop_gradient(clean_cost(cost, valid.astype(bool)))
-    if m == 0:
-        empty = jnp.zeros((b, 0), jnp.int32)
-        return empty, empty
+    target_idx = jnp.broadcast_to(jnp.arange(m, dtype=jnp.int32), (b, m))
+    if m == 0 or q == 0:  # nothing to match: every target (if any) gets -1
+        return jnp.full((b, m), -1, jnp.int32), target_idx
     axes = _varying_axes(cost)
     if axes:  # inside shard_map: see _match_gathered
         query_idx = _match_gathered(cost, valid.astype(bool), axes)
     else:
         query_idx = jax.vmap(_match_one)(cost, valid.astype(bool))  # [B, M]
-    target_idx = jnp.broadcast_to(jnp.arange(m, dtype=jnp.int32), (b, m))
     return query_idx, target_idx
 
 
