@@ -196,6 +196,24 @@ def test_dense_scan_is_thinned_evenly_and_said(model_file, tmp_path, capsys):
     np.testing.assert_array_equal(padded, pts[::3])  # every third: floor(k * 3n / n)
 
 
+def test_clouds_of_three_or_five_columns_are_read_by_column(model_file):
+    """Predictor reshaped its input to [-1, 4]: an open3d [N, 3] cloud was read as groups
+    of four numbers (other points, other objects) without an error."""
+    config, params = P.load_model(model_file)
+    predictor = P.Predictor(config, params, "unit")
+    cloud = _scans(1, seed=9, points=400)[0]
+    with_zero = cloud.copy()
+    with_zero[:, 3] = 0.0
+    ring = np.concatenate([cloud, np.full((400, 1), 7.0, np.float32)], axis=1)
+    for given, same_as in ((cloud[:, :3], with_zero), (ring, cloud)):
+        got, want = predictor(given), predictor(same_as)
+        np.testing.assert_array_equal(got[0], want[0])  # the points the model saw
+        np.testing.assert_array_equal(got[2].logits, want[2].logits)
+    for bad in (cloud.ravel(), cloud[:, :2], cloud.astype(str)):
+        with pytest.raises(ValueError, match=r"points: expected a numeric array \[N, 3\] or"):
+            predictor(bad)
+
+
 def test_intensity_units_map_onto_the_simulators_range():
     unit = np.array([[1.0, 0.0, 0.0, 0.4], [1.0, 1.0, 0.0, 1.0]], np.float32)
     livox = np.array([[1.0, 0.0, 0.0, 75.0], [1.0, 1.0, 0.0, 255.0]], np.float32)
@@ -513,6 +531,8 @@ def test_bag_out_keeps_stamps_and_never_replaces_other_folders(model_file, tmp_p
     scans = _scans(2)
     bag = tmp_path / "in"
     _cloud_bag(bag, scans, [10**9, 2 * 10**9], [123, 10**9 + 456])
+    # iter_frames' stamp is the header's (it gave the record time).
+    assert [f[2] for f in P.iter_frames(bag)] == [123, 10**9 + 456]
     out, pred_bag = tmp_path / "o", tmp_path / "pred"
     run = dict(pictures=False, verbose=False)
     P.predict(model_file, bag, out, bag_out=pred_bag, **run)
@@ -578,6 +598,53 @@ def test_predict_resumes_and_refuses_another_runs_outputs(model_file, tmp_path, 
         P.predict(model_file, data, data, verbose=False, overwrite=True)
     P.predict(model_file, data, stale, pictures=False, verbose=False, overwrite=True)
     assert sorted(p.stem for p in (stale / "label_2").iterdir()) == ["000000", "000001", "000002"]
+
+
+def test_a_resumed_run_predicts_damaged_frames_again(model_file, tmp_path, capsys):
+    """A frame counted as done when its files existed: an emptied label file was kept as a
+    frame without objects, and a cut mask failed only later, in `indoorbev eval`."""
+    data = tmp_path / "data"
+    for k, scan in enumerate(_scans(3)):
+        kitti.write_points(data / "velodyne" / f"{k:06d}.bin", scan)
+    out = tmp_path / "o"
+    first = P.predict(model_file, data, out, verbose=False)
+    files = {p.relative_to(out): p.read_bytes() for p in out.rglob("*.*")}
+    labels = [kitti.read_labels(out / "label_2" / f"{k:06d}.txt", CFG.data) for k in range(3)]
+    emptied = next(k for k in range(3) if len(labels[k]))
+    (out / "label_2" / f"{emptied:06d}.txt").write_text("")
+    cut = (emptied + 1) % 3
+    mask = out / "mask_2" / f"{cut:06d}.png"
+    mask.write_bytes(mask.read_bytes()[:40])
+    (out / "pictures" / f"{(emptied + 2) % 3:06d}.png").write_bytes(b"")
+    capsys.readouterr()
+    again = P.predict(model_file, data, out, verbose=False)
+    said = capsys.readouterr().err
+    assert again["resumed_frames"] == 0 and again["objects"] == first["objects"]
+    assert "holds ids [1" in said and f"{emptied:06d}.txt has 0 lines; predicting it again" in said
+    assert f"{mask}: not a readable PNG" in said
+    assert f"{(emptied + 2) % 3:06d}.png: not a readable PNG" in said
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*.*")} == files
+
+
+def test_a_kitti_folder_reads_every_cloud_kind_in_velodyne(model_file, tmp_path):
+    """velodyne/ was globbed for lowercase *.bin only: a .BIN, .pcd or .npy gave "no frames
+    found", while the same files in a plain folder were read."""
+    scans = _scans(3)
+    velodyne = tmp_path / "k" / "velodyne"
+    kitti.write_points(velodyne / "000000.BIN", scans[0])
+    np.save(velodyne / "000001.npy", scans[1])
+    kitti.write_points(tmp_path / "plain" / "000000.bin", scans[0])
+    np.save(tmp_path / "plain" / "000001.npy", scans[1])
+    got = P.predict(model_file, tmp_path / "k", tmp_path / "o1", pictures=False, verbose=False)
+    want = P.predict(model_file, tmp_path / "plain", tmp_path / "o2", pictures=False, verbose=False)
+    assert got["frames"] == want["frames"] == 2
+    for k in ("000000", "000001"):
+        a, b = tmp_path / "o1" / "label_2" / f"{k}.txt", tmp_path / "o2" / "label_2" / f"{k}.txt"
+        assert a.read_bytes() == b.read_bytes()
+    empty = tmp_path / "e" / "velodyne"
+    empty.mkdir(parents=True)
+    with pytest.raises(ValueError, match=r"e/velodyne: no \.bin, \.pcd, \.npy cloud files"):
+        P.predict(model_file, tmp_path / "e", tmp_path / "o3", verbose=False)
 
 
 def test_input_errors_name_the_path_and_empty_clouds_are_said(model_file, tmp_path, capsys):

@@ -22,6 +22,25 @@ def wrap_angle(a):
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
+def as_points(points, name: str = "points") -> np.ndarray:
+    """float32 [N, 4] (x, y, z, intensity) from a numeric [N, 3] (intensity 0) or [N, 4+]
+    (columns past the fourth dropped) array; anything else is refused, naming ``name``.
+
+    A flat reshape to [N, 4] would read an open3d [N, 3] cloud as groups of four numbers.
+    """
+    arr = np.asarray(points)
+    if arr.ndim != 2 or arr.shape[1] < 3 or arr.dtype.kind not in "fiu":
+        raise ValueError(
+            f"{name}: expected a numeric array [N, 3] or [N, 4+] (x, y, z[, intensity]), "
+            f"got {arr.dtype} {list(arr.shape)}"
+        )
+    if arr.shape[1] == 4:
+        return arr.astype(np.float32, copy=False)
+    out = np.zeros((arr.shape[0], 4), np.float32)
+    out[:, : min(4, arr.shape[1])] = arr[:, :4]
+    return out
+
+
 def on_grid(x, y, grid: GridConfig):
     """bool [...]: (x, y) inside the grid's closed x and y ranges; NaN is outside (numpy or
     JAX arrays)."""

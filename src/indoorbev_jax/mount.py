@@ -25,6 +25,8 @@ import math
 
 import numpy as np
 
+from indoorbev_jax.geometry import as_points
+
 
 @dataclasses.dataclass(frozen=True)
 class LidarMount:
@@ -74,7 +76,7 @@ class LidarMount:
 
     def _turned(self, points: np.ndarray, transpose: bool) -> np.ndarray:
         """float32 [N, 4]: each point's xyz times R^T (R p) or R (R^T p), in float64."""
-        points = np.asarray(points, np.float32).reshape(-1, 4)
+        points = as_points(points)
         out = points.copy()
         if self.rotated:
             rotation = self.rotation()

@@ -38,7 +38,7 @@ from indoorbev_jax.data import kitti
 from indoorbev_jax.data.clouds import SUFFIXES as CLOUD_SUFFIXES
 from indoorbev_jax.data.clouds import read_cloud
 from indoorbev_jax.data.dataset import pad_points
-from indoorbev_jax.geometry import in_workspace, wrap_angle
+from indoorbev_jax.geometry import as_points, in_workspace, wrap_angle
 from indoorbev_jax.inference import apply_views, panoptic_inference, unview_cells
 from indoorbev_jax.models import IndoorBEV
 from indoorbev_jax.mount import LEVEL, LidarMount, check_level_frame
@@ -81,7 +81,7 @@ def intensity_factor(units: str | float, points: np.ndarray) -> float:
 
 def normalize_intensity(points: np.ndarray, factor: float) -> np.ndarray:
     """float32 [N, 4], intensity times ``factor`` clipped to [0, 1] (the simulator's range)."""
-    points = np.array(points, np.float32).reshape(-1, 4)
+    points = as_points(points).copy()
     points[:, 3] = np.clip(points[:, 3] * np.float32(factor), 0.0, 1.0)
     return points
 
@@ -290,8 +290,12 @@ def open_input(path: str | os.PathLike, topic: str | None = None) -> tuple[int, 
     if path.is_file() and path.suffix.lower() in CLOUD_SUFFIXES:
         return 1, _file_frames([path])
     if (path / "velodyne").is_dir():
-        bins = sorted(p for p in (path / "velodyne").glob("*.bin") if not kitti.is_hidden(p))
-        return len(bins), _file_frames(bins)
+        files = _cloud_files(path / "velodyne")
+        if not files:
+            raise ValueError(
+                f"{path / 'velodyne'}: no {', '.join(CLOUD_SUFFIXES)} cloud files in it"
+            )
+        return len(files), _file_frames(files)
     if is_bag:
         from indoorbev_jax.rosbag import count_clouds
 
@@ -307,13 +311,39 @@ def open_input(path: str | os.PathLike, topic: str | None = None) -> tuple[int, 
     )
 
 
+def _damaged_outputs(label_path: Path, mask_path: Path, picture_path, config: Config):
+    """Why a frame written by an earlier run cannot be kept, or None: its files must read,
+    and the mask's ids must be exactly 1..(label lines), as ``to_labels`` writes them (an
+    emptied label file would otherwise be kept as a frame without objects)."""
+    try:
+        labels = kitti.read_labels(label_path, config.data)
+        ids = kitti.read_mask(mask_path, config.grid.shape)
+    except (ValueError, OSError) as e:  # DatasetError names the file
+        return str(e)
+    if picture_path:
+        try:
+            with viz.Image.open(picture_path) as im:
+                im.verify()
+        except (OSError, ValueError, SyntaxError) as e:  # what PIL raises for broken files
+            return f"{picture_path}: not a readable PNG ({type(e).__name__}: {e})"
+    present = np.unique(ids[ids > 0])
+    if not np.array_equal(present, np.arange(1, len(labels) + 1)):
+        return (
+            f"{mask_path} holds ids {present.tolist()[:5]}{'...' if len(present) > 5 else ''} "
+            f"but {label_path} has {len(labels)} lines"
+        )
+    return None
+
+
 def iter_frames(path: str | os.PathLike, topic: str | None = None) -> Iterator:
-    """Yields (frame id, points [N, 4], stamp ns or None, frame name) from INPUT; the first
-    frame that cannot be read raises (``open_input`` goes on past it)."""
+    """Yields (frame id, points [N, 4], stamp ns or None, frame name) from INPUT; the stamp
+    is a bag message's header stamp (its record time when the header has none), None for
+    files. The first frame that cannot be read raises (``open_input`` goes on past it)."""
     for frame in open_input(path, topic)[1]:
         if frame.error is not None:
             raise frame.error
-        yield frame.frame_id, frame.points, frame.log_ns, frame.frame_name
+        stamp = frame.stamp_ns if frame.stamp_ns is not None else frame.log_ns
+        yield frame.frame_id, frame.points, stamp, frame.frame_name
 
 
 class Predictor:
@@ -641,7 +671,12 @@ def predict(
             picture_path = out / "pictures" / f"{frame.frame_id}.png"
             wanted = [label_path, mask_path] + ([picture_path] if pictures else [])
             summary["frames"] += 1
+            damage = None
             if all(p.exists() for p in wanted):
+                damage = _damaged_outputs(label_path, mask_path, pictures and picture_path, config)
+                if damage:  # a power cut or an edit: predicted again below
+                    print(f"{count}: {damage}; predicting it again", file=sys.stderr, flush=True)
+            if all(p.exists() for p in wanted) and not damage:
                 summary["resumed_frames"] += 1
                 # No model call, but the cloud is read as the first run read it: "auto"
                 # intensity units carry over to later frames (a resumed run read a dark Livox

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from indoorbev_jax.data.kitti import DatasetError, read_points
+from indoorbev_jax.geometry import as_points
 
 SUFFIXES = (".bin", ".pcd", ".npy")
 INTENSITY_NAMES = ("intensity", "reflectivity", "i")
@@ -76,14 +77,10 @@ def read_npy(path: str | os.PathLike) -> np.ndarray:
             f"{path}: shape {list(arr.shape)} looks channels-first ([C, N], as nuScenes and "
             "many torch pipelines keep clouds); expected [N, C]: save arr.T"
         )
-    if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] < 3:
-        raise DatasetError(
-            f"{path}: expected a numeric array [N, 3] or [N, 4+] (x, y, z[, intensity]), "
-            f"got {arr.dtype} {list(arr.shape)}"
-        )
-    out = np.zeros((arr.shape[0], 4), np.float32)
-    out[:, : min(4, arr.shape[1])] = arr[:, :4]
-    return out
+    try:
+        return as_points(arr, str(path))
+    except ValueError as e:
+        raise DatasetError(str(e)) from e
 
 
 def _parse_pcd_header(path: Path, data: bytes) -> tuple[dict[str, list[str]], int]:

@@ -29,7 +29,7 @@ import numpy as np
 from indoorbev_jax.config import NUM_CLASSES, Config, GridConfig
 from indoorbev_jax.data import kitti
 from indoorbev_jax.data.rasterize import instance_ids_from_masks, rasterize_boxes
-from indoorbev_jax.geometry import in_workspace
+from indoorbev_jax.geometry import as_points, in_workspace
 from indoorbev_jax.types import Batch, Targets
 
 
@@ -78,7 +78,7 @@ def pad_points(
       points float32 [max_points, 4] (invalid rows zeroed), valid bool [max_points], and
       counts of non-finite, blind-zone, out-of-workspace and dropped points.
     """
-    points = np.asarray(points, np.float32).reshape(-1, 4)
+    points = as_points(points)
     finite = np.isfinite(points).all(axis=1)
     # float64 and a 1e-5 margin: a simulated return at exactly min_range stays valid.
     radius = np.linalg.norm(points[:, :3].astype(np.float64) - np.asarray(origin), axis=1)

@@ -110,7 +110,9 @@ _FILE_MODE = 0o666 & ~_umask()
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """Calls ``write(tmp)`` on a temporary file beside ``path``, then renames it into place,
     so that ``path`` is either absent, the old file or the whole new one. The file gets the
-    mode a plain ``open`` would give (0o666 less the process umask)."""
+    mode a plain ``open`` would give (0o666 less the process umask). Its data reach the
+    disk before the rename (fsync, about 2 ms a file): a robot that loses power must not
+    keep an empty file under the final name."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -118,6 +120,11 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     try:
         write(Path(tmp))
         os.chmod(tmp, _FILE_MODE)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.replace(tmp, path)
     except OSError as e:
         Path(tmp).unlink(missing_ok=True)
