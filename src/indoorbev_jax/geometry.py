@@ -22,6 +22,19 @@ def wrap_angle(a):
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
+# Points whose |intensity| exceeds this are unusable, like non-finite ones: the encoder's
+# LayerNorm variance overflows float32 near 1e20 and NaNs the whole frame's output. Real
+# units (Livox 0-255, percent, [0, 1]) stay far below it.
+MAX_ABS_INTENSITY = 1e6
+
+
+def usable(points):
+    """bool [...]: points ``[..., 4]`` with finite coordinates and a finite intensity of at
+    most ``MAX_ABS_INTENSITY`` in size (numpy or JAX arrays)."""
+    xp = jnp if isinstance(points, jax.Array) else np
+    return xp.isfinite(points).all(-1) & (xp.abs(points[..., 3]) <= MAX_ABS_INTENSITY)
+
+
 def as_points(points, name: str = "points") -> np.ndarray:
     """float32 [N, 4] (x, y, z, intensity) from a numeric [N, 3] (intensity 0) or [N, 4+]
     (columns past the fourth dropped) array; anything else is refused, naming ``name``.

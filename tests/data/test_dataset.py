@@ -69,11 +69,12 @@ def test_points_in_the_sensors_blind_zone_are_invalid_and_counted(tmp_path):
          [r, 0.0, 0.0, 0.5],  # on the blind zone's edge: a return the simulator can give
          [0.0, -1.0, 0.5, 0.5],
          [np.nan, 0.0, 0.0, 0.5],
-         [50.0, 0.0, 0.0, 0.5]], np.float32
+         [50.0, 0.0, 0.0, 0.5],
+         [0.0, 1.0, 0.5, 1e25]], np.float32  # an intensity that overflows the encoder
     )  # fmt: skip
     kitti.write_frame(tmp_path, "a", pts, kitti.ObjectLabels.empty(), CLASS_NAMES)
     item, stats = KittiDataset(tmp_path, None, cfg).load(0)
-    assert (stats.nonfinite_points, stats.blind_points, stats.outside_points) == (1, 2, 1)
+    assert (stats.nonfinite_points, stats.blind_points, stats.outside_points) == (2, 2, 1)
     assert stats.valid_points == 2 == item.point_valid.sum()
     np.testing.assert_array_equal(item.points[item.point_valid], pts[2:4])
     # min_range 0 (pad_points' default) keeps every finite point inside the workspace.

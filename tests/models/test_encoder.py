@@ -84,9 +84,12 @@ def test_invariant_to_point_order_and_extra_invalid_points():
     junk[:, ::3, 0] = np.nan
     junk_valid = rng.uniform(size=(2, 600)) > 0.5
     junk[junk_valid, 2] = 10.0  # "valid" junk sits above z_max
-    padded_pts = np.concatenate([pts, junk], 1)
-    padded_valid = np.concatenate([valid, junk_valid], 1)
-    mix = rng.permutation(1200)
+    # Valid points in the workspace with an absurd intensity (1e25 NaN'd the whole map).
+    loud = np.array(pts[:, :8])
+    loud[..., 3] = [1e25, -1e30, 3e38, 1e7, 1e25, 1e20, -1e25, 2e6]
+    padded_pts = np.concatenate([pts, junk, loud], 1)
+    padded_valid = np.concatenate([valid, junk_valid, np.ones((2, 8), bool)], 1)
+    mix = rng.permutation(1208)
     padded, _ = _apply(params, padded_pts[:, mix], padded_valid[:, mix])
     np.testing.assert_allclose(np.asarray(padded), np.asarray(base), rtol=1e-5, atol=1e-5)
 

@@ -29,7 +29,7 @@ import numpy as np
 from indoorbev_jax.config import NUM_CLASSES, Config, GridConfig
 from indoorbev_jax.data import kitti
 from indoorbev_jax.data.rasterize import instance_ids_from_masks, rasterize_boxes
-from indoorbev_jax.geometry import as_points, in_workspace
+from indoorbev_jax.geometry import as_points, in_workspace, usable
 from indoorbev_jax.types import Batch, Targets
 
 
@@ -65,7 +65,8 @@ def pad_points(
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """Pads a raw cloud to ``[max_points, 4]`` with a validity mask.
 
-    Non-finite points, points closer to the sensor (at ``origin``: a ``mount.LidarMount``
+    Non-finite points (an intensity beyond ``geometry.MAX_ABS_INTENSITY`` counts as
+    non-finite), points closer to the sensor (at ``origin``: a ``mount.LidarMount``
     height correction moves it off zero) than ``min_range`` and out-of-workspace points are
     left out (counted). Callers pass ``sim.min_range``: the
     simulated training scans have no return that close, and lidar drivers (Livox's among
@@ -79,7 +80,7 @@ def pad_points(
       counts of non-finite, blind-zone, out-of-workspace and dropped points.
     """
     points = as_points(points)
-    finite = np.isfinite(points).all(axis=1)
+    finite = usable(points)
     # float64 and a 1e-5 margin: a simulated return at exactly min_range stays valid.
     radius = np.linalg.norm(points[:, :3].astype(np.float64) - np.asarray(origin), axis=1)
     blind = finite & (radius < min_range * (1.0 - 1e-5))

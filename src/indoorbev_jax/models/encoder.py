@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from indoorbev_jax.config import GridConfig
-from indoorbev_jax.geometry import cell_index, in_workspace
+from indoorbev_jax.geometry import cell_index, in_workspace, usable
 from indoorbev_jax.models.layers import Dense
 
 
@@ -29,10 +29,11 @@ def point_cells(
 
     Returns:
       ``(points, ok, row, col)``: points with unusable entries zeroed [B, N, 4]; ok bool
-      [B, N], True for valid, finite points inside the (closed) workspace;
+      [B, N], True for valid, finite points inside the (closed) workspace (an intensity
+      beyond ``geometry.MAX_ABS_INTENSITY`` counts as non-finite);
       row, col int32 [B, N] (clipped into the grid, meaningful only where ok).
     """
-    finite = jnp.all(jnp.isfinite(points), axis=-1)
+    finite = usable(points)
     pts = jnp.where(finite[..., None], points, 0.0)
     ok = valid & finite & in_workspace(pts, grid)
     row, col, _ = cell_index(pts[..., 0], pts[..., 1], grid)
