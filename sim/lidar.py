@@ -10,8 +10,9 @@ as array code, no culling) casts on any JAX backend, and is the default there.
 
 Example:
   >>> m = mujoco.MjModel.from_xml_string(xml)
-  >>> mx = mjx.put_model(m)
-  >>> dx = mjx.kinematics(mx, mjx.put_data(m, mujoco.MjData(m)))
+  >>> d = mujoco.MjData(m)
+  >>> mujoco.mj_forward(m, d)  # poses; mjx.kinematics refuses a model without joints
+  >>> mx, dx = mjx.put_model(m), mjx.put_data(m, d)
   >>> dist, geom = jax.jit(cast_rays)(mx, dx, jnp.zeros(3), dirs, 20.0)  # dirs [R, 3]
 """
 

@@ -74,6 +74,17 @@ def _u32_to_unit(x: jax.Array) -> jax.Array:
     return (x >> 8).astype(jnp.float32) * jnp.float32(2.0**-24)
 
 
+def _check_rate_and_elevations(pattern, elevations_deg) -> None:
+    """A finite frame rate > 0 (times divide by it) and elevations in [-90, 90] degrees
+    (beyond, they fold back silently while ``covers`` claims the range)."""
+    name = type(pattern).__name__
+    if not (math.isfinite(pattern.frame_rate) and pattern.frame_rate > 0):
+        raise ValueError(f"{name}.frame_rate must be finite and > 0, got {pattern.frame_rate}")
+    bad = [e for e in elevations_deg if not -90.0 <= e <= 90.0]
+    if bad:
+        raise ValueError(f"{name}: elevations must lie in [-90, 90] degrees, got {bad}")
+
+
 @dataclasses.dataclass(frozen=True)
 class Mid360Pattern:
     """Livox MID-360-like non-repetitive pattern.
@@ -95,7 +106,12 @@ class Mid360Pattern:
     elevation_cycles_per_frame: float = 161.80339887
 
     def __post_init__(self):
-        rays = self.points_per_second / self.frame_rate if self.frame_rate > 0 else math.nan
+        _check_rate_and_elevations(self, (self.elevation_min_deg, self.elevation_max_deg))
+        if not (isinstance(self.num_emitters, (int, np.integer)) and self.num_emitters >= 1):
+            raise ValueError(
+                f"Mid360Pattern.num_emitters must be an int >= 1, got {self.num_emitters!r}"
+            )
+        rays = self.points_per_second / self.frame_rate
         whole = math.isfinite(rays) and abs(rays - round(rays)) < 1e-9
         if not (whole and round(rays) % self.num_emitters == 0):
             raise ValueError(
@@ -166,6 +182,7 @@ class SpinningPattern:
     def __post_init__(self):
         if len(self.elevations_deg) == 0:
             raise ValueError("SpinningPattern.elevations_deg must list at least one beam")
+        _check_rate_and_elevations(self, self.elevations_deg)
         if self.columns <= 0:
             raise ValueError("SpinningPattern.columns must be positive")
 
@@ -222,6 +239,7 @@ class GridPattern:
     def __post_init__(self):
         if self.azimuth_steps <= 0 or self.elevation_steps <= 0:
             raise ValueError("GridPattern.azimuth_steps and elevation_steps must be positive")
+        _check_rate_and_elevations(self, (self.elevation_min_deg, self.elevation_max_deg))
 
     @property
     def num_rays(self) -> int:

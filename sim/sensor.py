@@ -14,6 +14,7 @@ added along the ray. Returns outside [min_range, max_range] (after noise) are in
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -36,18 +37,24 @@ class Pose:
     rot: jax.Array
 
 
-def pose_from_site(data, site_id: int) -> Pose:
-    """Sensor pose of a MuJoCo site (``site_xpos``/``site_xmat``; batched data gives [B])."""
-    pos = jnp.asarray(data.site_xpos)[..., site_id, :]
-    rot = jnp.asarray(data.site_xmat)[..., site_id, :, :].reshape(pos.shape[:-1] + (3, 3))
+def _frame_pose(xpos, xmat, index: int) -> Pose:
+    """Pose of frame ``index`` of ``xpos`` [..., n, 3] and ``xmat`` [..., n, 3, 3] (MJX) or
+    [..., n, 9] (``mujoco.MjData``)."""
+    pos = jnp.asarray(xpos)[..., index, :]
+    rot = jnp.asarray(xmat).reshape(pos.shape[:-1] + (-1, 3, 3))[..., index, :, :]
     return Pose(pos.astype(jnp.float32), rot.astype(jnp.float32))
+
+
+def pose_from_site(data, site_id: int) -> Pose:
+    """Sensor pose of a MuJoCo site (``site_xpos``/``site_xmat`` of ``mjx.Data`` or
+    ``mujoco.MjData``; batched data gives [B])."""
+    return _frame_pose(data.site_xpos, data.site_xmat, site_id)
 
 
 def pose_from_body(data, body_id: int) -> Pose:
-    """Sensor pose of a MuJoCo body frame (``xpos``/``xmat``; batched data gives [B])."""
-    pos = jnp.asarray(data.xpos)[..., body_id, :]
-    rot = jnp.asarray(data.xmat)[..., body_id, :, :].reshape(pos.shape[:-1] + (3, 3))
-    return Pose(pos.astype(jnp.float32), rot.astype(jnp.float32))
+    """Sensor pose of a MuJoCo body frame (``xpos``/``xmat`` of ``mjx.Data`` or
+    ``mujoco.MjData``; batched data gives [B])."""
+    return _frame_pose(data.xpos, data.xmat, body_id)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,14 +83,15 @@ class SensorConfig:
                 f"SensorConfig.min_range/max_range must satisfy 0 <= min < max, got "
                 f"{self.min_range}, {self.max_range}"
             )
-        if self.range_noise_std < 0.0:
-            raise ValueError(
-                f"SensorConfig.range_noise_std must be >= 0, got {self.range_noise_std}"
-            )
-        if not 0.0 <= self.dropout_prob <= 1.0:
-            raise ValueError(
-                f"SensorConfig.dropout_prob must be in [0, 1], got {self.dropout_prob}"
-            )
+        # Written so that NaN fails each test (NaN < 0 is False).
+        for name in ("range_noise_std", "incidence_exponent"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"SensorConfig.{name} must be finite and >= 0, got {value}")
+        for name in ("dropout_prob", "default_reflectivity"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"SensorConfig.{name} must be in [0, 1], got {value}")
 
 
 @struct.dataclass
@@ -138,7 +146,8 @@ def scan(
     }
     geo = lidar.scene_geometry(model, data, **geo_kw)
     nscene, ngeom = geo.pos.shape[:2]
-    batched = jnp.ndim(data.geom_xpos) == 3
+    # Poses given with a batch axis keep it, even a batch of one (as cast_rays does).
+    batched = jnp.ndim(data.geom_xpos) == 3 or jnp.ndim(pose.pos) == 2 or jnp.ndim(pose.rot) == 3
     directions = jnp.asarray(directions, jnp.float32)
     if directions.ndim != 2 or directions.shape[-1] != 3:
         raise ValueError(f"directions must be [R, 3] (sensor frame), got {directions.shape}")
@@ -195,11 +204,14 @@ def scan(
 class MjLidar:
     """A lidar on a plain MuJoCo model, scanning ``mujoco.MjData`` states step by step.
 
-    For simulations stepped on the host with ``mujoco.mj_step``: the geoms go to the
-    device once (no ``mjx.put_model``, so models MJX refuses work; ``skip_unsupported=True``
-    for meshes), and each call copies only what moves (``geom_xpos``, ``geom_xmat`` and the
-    sensor site's pose) into one jitted scan. The result is exactly ``scan`` on
-    ``mjx.put_data(model, data)``, without converting the whole ``MjData`` each step.
+    For simulations stepped on the host with ``mujoco.mj_step``: no ``mjx.put_model``, so
+    models MJX refuses work (``skip_unsupported=True`` for meshes), and each call copies only
+    what rays read (the geoms' poses, sizes, colours and materials, a few floats per geom,
+    and the sensor site's pose) into one jitted scan. So edits of ``model.geom_size``,
+    ``geom_rgba``, ``geom_matid`` or ``mat_rgba`` between calls (domain randomisation,
+    hiding a geom with alpha 0) are seen; geom types, bodies and groups are read once. The
+    result is exactly ``scan`` on ``mjx.put_data(model, data)``, without converting the
+    whole ``MjData`` each step.
 
     Example:
       >>> lidar = MjLidar(m, "lidar", patterns.Mid360Pattern())
@@ -240,10 +252,11 @@ class MjLidar:
         cast_kwargs.setdefault("bodyexclude", body if body > 0 else -1)
         # Only the fields rays read: mjx.put_model would refuse many robot models for
         # collision pairs MJX lacks (cylinder-box, meshes), which a lidar never needs.
-        geoms = geom_model_of(model, jnp.asarray(model.geom_size, jnp.float32))
+        static = geom_model_of(model, jnp.asarray(model.geom_size, jnp.float32))
         refl = None if reflectivity is None else jnp.asarray(reflectivity, jnp.float32)
 
-        def run(geom_xpos, geom_xmat, site_pos, site_mat, frame, key):
+        def run(looks, geom_xpos, geom_xmat, site_pos, site_mat, frame, key):
+            geoms = static.replace(**looks)
             data = GeomData(geom_xpos=geom_xpos, geom_xmat=geom_xmat)
             pose = Pose(site_pos, site_mat.reshape(3, 3))
             dirs = pattern.frame(frame).directions
@@ -258,7 +271,15 @@ class MjLidar:
                 f"MjLidar: data.geom_xpos has shape {data.geom_xpos.shape}, the model has "
                 f"{self.model.ngeom} geoms; pass an MjData of the model given at construction"
             )
+        m = self.model
+        looks = {
+            "geom_size": np.asarray(m.geom_size, np.float32),
+            "geom_rgba": np.asarray(m.geom_rgba, np.float32),
+            "geom_matid": np.asarray(m.geom_matid, np.int32),
+            "mat_rgba": np.asarray(m.mat_rgba, np.float32).reshape(-1, 4),
+        }
         return self._run(
+            looks,
             np.asarray(data.geom_xpos, np.float32),
             np.asarray(data.geom_xmat, np.float32).reshape(-1, 3, 3),
             np.asarray(data.site_xpos[self.site_id], np.float32),

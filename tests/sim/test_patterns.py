@@ -104,9 +104,8 @@ def test_bad_patterns_raise_naming_the_field():
         patterns.Mid360Pattern(points_per_second=200_001)
     # A fractional rate whose frames would have a fractional ray count (10.3 Hz: 19417.5)
     # is refused; one with whole rays per emitter is taken, and its frames have them.
-    for rate in (10.3, 0.0):
-        with pytest.raises(ValueError, match="rays a frame"):
-            patterns.Mid360Pattern(frame_rate=rate)
+    with pytest.raises(ValueError, match="rays a frame"):
+        patterns.Mid360Pattern(frame_rate=10.3)
     for rate, pps in ((12.5, 200_000), (7.5, 150_000)):
         pattern = patterns.Mid360Pattern(points_per_second=pps, frame_rate=rate)
         assert pattern.frame(3).directions.shape == (pps / rate, 3) == (pattern.num_rays, 3)
@@ -114,6 +113,21 @@ def test_bad_patterns_raise_naming_the_field():
         patterns.SpinningPattern(())
     with pytest.raises(ValueError, match="azimuth_steps"):
         patterns.GridPattern(0, 4)
+    # These were a ZeroDivisionError, inf start times, or elevations folding back past 90.
+    with pytest.raises(ValueError, match=r"Mid360Pattern.num_emitters must be an int >= 1"):
+        patterns.Mid360Pattern(num_emitters=0)
+    for make in (patterns.Mid360Pattern, patterns.GridPattern,
+                 lambda **kw: patterns.SpinningPattern((0.0,), **kw)):  # fmt: skip
+        name = make().__class__.__name__
+        for rate in (0.0, -10.0, np.nan, np.inf):
+            with pytest.raises(ValueError, match=rf"{name}.frame_rate must be finite and > 0"):
+                make(frame_rate=rate)
+    with pytest.raises(ValueError, match=r"Mid360Pattern: elevations must lie in \[-90, 90\]"):
+        patterns.Mid360Pattern(elevation_max_deg=120.0)
+    with pytest.raises(ValueError, match=r"SpinningPattern: elevations .* got \[-95.0\]"):
+        patterns.SpinningPattern((0.0, -95.0))
+    with pytest.raises(ValueError, match=r"GridPattern: elevations"):
+        patterns.GridPattern(4, 4, elevation_min_deg=-91.0)
 
 
 def test_covers_every_ray_of_a_frame_and_nothing_past_the_limits():

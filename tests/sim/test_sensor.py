@@ -115,6 +115,14 @@ def test_batched_scenes_and_poses(scene):
     sp = _scan(mx, dx, pose, dirs, jax.random.key(0), cfg)
     np.testing.assert_array_equal(np.asarray(sp.valid), np.asarray(sb.valid))
     np.testing.assert_allclose(np.asarray(sp.points), np.asarray(sb.points), atol=1e-6)
+    # A batch of one pose keeps its axis (it was dropped, unlike cast_rays'), scene batched
+    # or not.
+    one = sensor.Pose(pose.pos[:1], pose.rot[:1])
+    first = jax.tree.map(lambda x: x[:1], dxb)
+    for data in (dx, first):
+        s1 = _scan(mx, data, one, dirs, jax.random.key(0), cfg)
+        assert s1.points.shape == (1, 2000, 4) and s1.valid.shape == (1, 2000)
+        np.testing.assert_array_equal(np.asarray(s1.valid), np.asarray(sb.valid[:1]))
 
 
 def test_bad_config_names_the_field():
@@ -122,6 +130,13 @@ def test_bad_config_names_the_field():
         sensor.SensorConfig(dropout_prob=1.5)
     with pytest.raises(ValueError, match="min_range"):
         sensor.SensorConfig(min_range=5.0, max_range=1.0)
+    # NaN passed `value < 0` and gave all-invalid scans or NaN intensities.
+    for name, bad in (("range_noise_std", np.nan), ("range_noise_std", np.inf),
+                      ("incidence_exponent", np.nan), ("incidence_exponent", -1.0),
+                      ("default_reflectivity", np.nan), ("default_reflectivity", 1.5),
+                      ("dropout_prob", np.nan)):  # fmt: skip
+        with pytest.raises(ValueError, match=f"SensorConfig.{name} must be"):
+            sensor.SensorConfig(**{name: bad})
 
 
 def test_mjlidar_scans_host_mujoco_states_like_scan():
@@ -148,6 +163,26 @@ def test_mjlidar_scans_host_mujoco_states_like_scan():
         for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
         assert np.asarray(got.geom_id == m.ngeom - 1).sum() > 0  # the cart is seen
+    # Edits of the model between calls are seen (they were copied once, at construction).
+    for edit in ("size", "alpha"):
+        if edit == "size":
+            m.geom_size[-1] = [0.6, 0.6, 0.5]
+        else:
+            m.geom_rgba[-1, 3] = 0.0  # hidden, as mj_ray hides it
+        key = jax.random.key(7)
+        got = lidar(d, key, frame=0)
+        dx, mx = mjx.put_data(m, d), mjx.put_model(m)
+        want = _scan(mx, dx, sensor.pose_from_site(dx, 0), pattern.frame(0).directions, key, cfg)
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        seen = np.asarray(got.geom_id == m.ngeom - 1).sum()
+        assert (seen > 0) == (edit == "size"), edit
+    # pose_from_site reads MjData's [n, 9] matrices as MJX's [n, 3, 3] (an IndexError).
+    host, device = sensor.pose_from_site(d, 0), sensor.pose_from_site(mjx.put_data(m, d), 0)
+    np.testing.assert_array_equal(host.rot, device.rot)
+    np.testing.assert_array_equal(host.pos, device.pos)
+    body = int(m.site_bodyid[0])
+    np.testing.assert_array_equal(sensor.pose_from_body(d, body).rot, d.xmat[body].reshape(3, 3))
     with pytest.raises(ValueError, match="no site 'lidar2'; sites: \\['lidar'\\]"):
         sensor.MjLidar(m, "lidar2", pattern)
     other = mujoco.MjData(mujoco.MjModel.from_xml_string(XML))  # one geom fewer
