@@ -40,7 +40,13 @@ import numpy as np
 from indoorbev_jax.cli import check_folder, check_seed, check_whole
 from indoorbev_jax.config import Config, flatten_dict
 from indoorbev_jax.data import kitti
-from indoorbev_jax.rosbag import check_bag_target, markers_to_labels, typestore
+from indoorbev_jax.rosbag import (
+    check_bag_target,
+    check_partial,
+    markers_to_labels,
+    partial_path,
+    typestore,
+)
 
 SPLITS = ("train", "val", "test")
 POINTS_TOPIC, OBJECTS_TOPIC = "/lidar/points", "/lidar/objects"
@@ -133,9 +139,18 @@ def _check_bag_place(bag: Path, root: Path) -> None:
     """The bag is written last: refuse up front a place it could not take, so that no
     export runs for hours to fail there."""
     b, r = bag.resolve(), root.resolve()
-    if b == r or r in b.parents or b in r.parents:
-        raise ExportError(f"{bag}: the bag folder overlaps the dataset folder {root}; "
-                          "choose a bag folder outside it")  # fmt: skip
+    # The bag is first written to <bag>.partial (rosbag.write_bag): it must not overlap
+    # the dataset either, nor hold other files.
+    for place in (b, partial_path(b)):
+        if place == r or r in place.parents or place in r.parents:
+            raise ExportError(
+                f"{bag}: the bag folder (or its temporary {place.name}) overlaps the dataset "
+                f"folder {root}; choose a bag folder outside it"
+            )
+    try:
+        check_partial(b)
+    except FileExistsError as e:
+        raise ExportError(str(e)) from None
     existing = next(p for p in b.parents if p.exists())
     if not os.access(existing, os.W_OK | os.X_OK):
         raise ExportError(f"{bag}: cannot be created ({existing} is not writable)")

@@ -86,6 +86,8 @@ def test_a_failed_bag_write_names_the_bag(tmp_path, monkeypatch):
     with pytest.raises(OSError, match=r"full_bag: cannot write the bag \(OperationalError"):
         write_bag(tmp_path / "full_bag", [frame], CFG.data.class_names, "/points", "/objects")
     assert not (tmp_path / "full_bag").exists()
+    # Its temporary folder goes too: it kept the full disk's space until a rerun.
+    assert not (tmp_path / "full_bag.partial").exists()
 
 
 def _cloud(fields, dtype, points, bigendian=False):

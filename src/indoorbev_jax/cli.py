@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import numbers
 import os
 import signal
 import sys
@@ -73,17 +74,18 @@ def seed_int(text: str) -> int:
 def check_whole(name: str, value, minimum: int, note: str = "") -> int:
     """``value`` if it is an int (not a bool) >= ``minimum``; ``note`` follows the bound in
     the message, e.g. " (0: never)"."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+    whole = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+    if not whole or value < minimum:
         raise ValueError(f"{name}: expected a whole number {_bound(minimum)}{note}, got {value!r}")
-    return value
+    return int(value)  # numpy integers too
 
 
 def check_seed(name: str, value) -> int:
     """``value`` if it is a whole number in [0, 2**32) (``jax.random.key``'s distinct seeds)."""
-    whole = isinstance(value, int) and not isinstance(value, bool)
+    whole = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
     if not (whole and 0 <= value < SEED_LIMIT):
         raise ValueError(f"{name}: expected a whole number in [0, 2**32), got {value!r}")
-    return value
+    return int(value)
 
 
 def check_folder(name: str, path, file_error: type[Exception] = ValueError) -> Path:

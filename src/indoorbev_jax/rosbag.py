@@ -476,6 +476,19 @@ def partial_path(bag: Path) -> Path:
     return bag.with_name(bag.name + ".partial")
 
 
+def check_partial(bag: Path) -> Path:
+    """``partial_path(bag)``, refused when it holds files an interrupted write of ``bag``
+    does not leave (those are deleted before the write)."""
+    partial = partial_path(bag)
+    ours = {bag.name, f"{bag.name}.old"}
+    if partial.is_dir() and any(p.name not in ours for p in partial.iterdir()):
+        raise FileExistsError(
+            f"{partial}: holds files that an interrupted write of {bag} does not leave; "
+            "move or delete it"
+        )
+    return partial
+
+
 def write_bag(
     bag: str | os.PathLike,
     frames: Iterable[tuple],
@@ -498,14 +511,8 @@ def write_bag(
     ts = typestore()
     bag = Path(bag)
     check_bag_target(bag, (points_topic, objects_topic))
-    partial = partial_path(bag)
+    partial = check_partial(bag)
     replaced = partial / f"{bag.name}.old"  # the bag this write replaces, on its way out
-    ours = {bag.name, replaced.name}
-    if partial.is_dir() and any(p.name not in ours for p in partial.iterdir()):
-        raise FileExistsError(
-            f"{partial}: holds files that an interrupted write of {bag} does not leave; "
-            "move or delete it"
-        )
     shutil.rmtree(partial, ignore_errors=True)  # an earlier write of this bag, cut short
     partial.mkdir(parents=True)
     tmp = partial / bag.name
@@ -522,7 +529,11 @@ def write_bag(
                 writer.write(c_obj, log_ns, ts.serialize_cdr(markers, MARKER_ARRAY))
                 count += 1
     except (sqlite3.Error, WriterError) as e:  # a full disk, say: sqlite3 names no file
+        shutil.rmtree(partial, ignore_errors=True)  # its space back (the old bag is intact)
         raise OSError(f"{bag}: cannot write the bag ({type(e).__name__}: {e})") from e
+    except Exception:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
     check_bag_target(bag, (points_topic, objects_topic))  # nothing else appeared meanwhile
     # Renames only until the new bag is in place: a kill while a large old bag was being
     # deleted left it half gone under the final name, and every rerun refused it.

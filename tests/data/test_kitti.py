@@ -115,6 +115,8 @@ GOOD = "Table 0.00 0 -10 0 0 0 0 1.0 1.0 1.0 0.0 0.0 2.0 0.0"
         (GOOD.replace("0.00 0 -10", "0.00 1.7 -10"), r"l\.txt:2: occlusion .* got 1\.7"),
         (GOOD.replace("0.00 0 -10", "1.50 0 -10"), r"l\.txt:2: truncation .* got 1\.50"),
         (GOOD.replace("1.0 1.0 1.0", "-1.0 1.0 1.0"), r"l\.txt:2: dimensions h w l must be"),
+        # A zero size is no object either (ground truth; a box without cells).
+        (GOOD.replace("1.0 1.0 1.0", "1.0 0.0 1.0"), r"l\.txt:2: .* positive, got 1\.0 0\.0 1\.0"),
         (GOOD + " 0.9", r"l\.txt:2: some lines .* \(line 2 has one, line 1 has none\)"),
         # float() reads "0_5" as 5.0; 1e39 is finite in float64 but inf in float32.
         (GOOD.replace("2.0", "0_5"), r"l\.txt:2: non-numeric field \('_' in '0_5'\)"),
@@ -147,6 +149,14 @@ def test_mask_round_trip_and_wrong_size(tmp_path):
     np.testing.assert_array_equal(kitti.read_mask(tmp_path / "m.png", shape), ids)
     with pytest.raises(kitti.DatasetError, match=r"m\.png: mask of shape \(40, 40\)"):
         kitti.read_mask(tmp_path / "m.png", (50, 50))
+    # 16-bit PNG: 65535 is the largest id; 65536 would wrap to 0 (no object), so it is refused.
+    ids[0, 0] = 65535
+    kitti.write_mask(tmp_path / "m.png", ids)
+    assert kitti.read_mask(tmp_path / "m.png", shape)[0, 0] == 65535
+    ids[0, 0] = 65536
+    with pytest.raises(ValueError, match=r"big\.png: expected \[H, W\] ids in 0\.\.65535"):
+        kitti.write_mask(tmp_path / "big.png", ids)
+    assert not (tmp_path / "big.png").exists()
 
 
 def test_masks_must_be_png_of_integer_ids(tmp_path):
@@ -167,6 +177,11 @@ def test_masks_must_be_png_of_integer_ids(tmp_path):
     Image.fromarray(ids.astype(np.float32), "F").save(tmp_path / "float.png", format="TIFF")
     with pytest.raises(kitti.DatasetError, match=r"float\.png: a TIFF image in mode F"):
         kitti.read_mask(tmp_path / "float.png", shape)
+    # A colour PNG (an overlay saved by a viewer) holds no ids either, whatever its size.
+    for mode in ("RGB", "RGBA", "LA"):
+        Image.fromarray(ids, "L").convert(mode).save(tmp_path / "colour.png")
+        with pytest.raises(kitti.DatasetError, match=rf"colour\.png: a PNG image in mode {mode};"):
+            kitti.read_mask(tmp_path / "colour.png", shape)
 
 
 def test_a_corrupt_mask_png_is_named(tmp_path):
@@ -243,6 +258,11 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
     with pytest.raises(Boom):
         kitti.atomic_write(tmp_path / "x.txt", write)
     assert list(tmp_path.iterdir()) == []
+    # A folder that cannot be made (here: a file in the way) names the file being written,
+    # not a hidden temporary one.
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(OSError, match=r"cannot write .*a_file/sub/y\.txt: "):
+        kitti.atomic_write(tmp_path / "a_file" / "sub" / "y.txt", lambda p: p.write_text("y"))
 
 
 def test_dontcare_blank_lines_and_bom_are_not_objects(tmp_path):
@@ -312,16 +332,23 @@ def test_float64_points_with_nan_rows_are_refused(tmp_path):
             kitti.read_points(tmp_path / f"{name}.bin")
 
 
+def _in_room(d: np.ndarray, ceiling: float = np.inf, half=(3.0, 2.0)) -> np.ndarray:
+    """float32 [R, 4]: where rays ``d`` [R, 3] from the sensor, in firing order, meet a
+    room of ``2 half`` m (6 x 4 m: walls, floor 0.5 m below, a ceiling ``ceiling`` m above),
+    with random intensities."""
+    with np.errstate(divide="ignore"):
+        floor = np.where(d[:, 2] < 0, 0.5 / -d[:, 2], ceiling / d[:, 2])
+        t = np.min(np.abs([half[0] / d[:, 0], half[1] / d[:, 1], floor]), 0)
+    intensity = np.random.default_rng(0).uniform(0, 1, len(d))
+    return np.c_[d * t[:, None], intensity].astype(np.float32)
+
+
 def _room_scan(rows: int = 16, cols: int = 600) -> np.ndarray:
     """float32 [rows * cols, 4]: a spinning lidar's points, in firing order, in a 6 x 4 m
     room (walls, floor 0.5 m below, no ceiling)."""
     az, el = np.meshgrid(np.linspace(-np.pi, np.pi, cols), np.radians(np.linspace(-15, 15, rows)))
     d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
-    with np.errstate(divide="ignore"):
-        floor = np.where(d[:, 2] < 0, 0.5 / -d[:, 2], np.inf)
-        t = np.min(np.abs([3 / d[:, 0], 2 / d[:, 1], floor]), 0)
-    intensity = np.random.default_rng(0).uniform(0, 1, len(d))
-    return np.c_[d * t[:, None], intensity].astype(np.float32)
+    return _in_room(d)
 
 
 def test_three_or_five_column_clouds_are_refused(tmp_path):
@@ -340,3 +367,23 @@ def test_three_or_five_column_clouds_are_refused(tmp_path):
     shuffled = scan[np.random.default_rng(1).permutation(len(scan))]
     kitti.write_points(tmp_path / "shuffled.bin", shuffled)
     np.testing.assert_array_equal(kitti.read_points(tmp_path / "shuffled.bin"), shuffled)
+
+
+@pytest.mark.parametrize("half, ceiling", [((3.0, 2.0), 2.0), ((20.0, 15.0), 5.0)])
+def test_a_mid360_scan_with_three_or_five_columns_is_refused(tmp_path, half, ceiling):
+    """The MID-360's non-repetitive pattern is the closest case (docs/DATASET.md): a frame
+    of the simulator's Mid360Pattern in a room with a ceiling, written with 3 or 5 float32
+    columns, is refused; written with 4 it is read as written. In a 40 x 30 m hall a
+    5-column file was read as garbage while only neighbouring points were compared."""
+    from indoorbev_sim.patterns import Mid360Pattern
+
+    directions = np.asarray(Mid360Pattern().frame(0).directions, np.float64)
+    scan = _in_room(directions, ceiling=ceiling, half=half)
+    assert np.isfinite(scan).all() and len(scan) % 4 == 0
+    kitti.write_points(tmp_path / "ok.bin", scan)
+    np.testing.assert_array_equal(kitti.read_points(tmp_path / "ok.bin"), scan)
+    line = np.arange(len(scan)) % 4  # the emitter, as a 5th column
+    for cols, points in ((3, scan[:, :3]), (5, np.c_[scan, line].astype(np.float32))):
+        points.tofile(tmp_path / f"c{cols}.bin")
+        with pytest.raises(kitti.DatasetError, match=rf"c{cols}\.bin: looks like {cols} float32"):
+            kitti.read_points(tmp_path / f"c{cols}.bin")

@@ -17,6 +17,7 @@ from indoorbev_sim import export as export_mod
 from indoorbev_sim import show
 from indoorbev_sim.cli import main
 
+from indoorbev_jax.cli import check_seed, check_whole
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
 from indoorbev_jax.rosbag import BagError
@@ -266,6 +267,20 @@ def test_bad_options_fail_before_any_frame(cache, tmp_path):
     for bag in (out, out / "bag", tmp_path):
         with pytest.raises(export_mod.ExportError, match="overlaps the dataset folder"):
             export_mod.export(out, 4, SEED, CFG, rosbag=bag, progress=False)
+    # ... and so is one whose temporary <bag>.partial is the dataset, or holds other files
+    # (both failed only after every frame).
+    with pytest.raises(export_mod.ExportError, match=r"temporary d\.partial\) overlaps"):
+        export_mod.export(tmp_path / "d.partial", 4, SEED, CFG, rosbag=tmp_path / "d",
+                          progress=False)  # fmt: skip
+    (tmp_path / "b.partial").mkdir()
+    (tmp_path / "b.partial" / "notes.txt").write_text("")
+    with pytest.raises(export_mod.ExportError, match=r"b\.partial: holds files that an inter"):
+        export_mod.export(out, 4, SEED, CFG, rosbag=tmp_path / "b", progress=False)
+    # numpy integers are whole numbers (they were refused as "a whole number ... got 2").
+    assert check_whole("frames", np.int64(2), 1) == 2 and check_seed("seed", np.uint32(7)) == 7
+    for bad in (True, np.bool_(True), 2.0):
+        with pytest.raises(ValueError, match="frames: expected a whole number"):
+            check_whole("frames", bad, 1)
     with pytest.raises(ValueError, match="rosbag: an empty path"):
         export_mod.export(out, 4, SEED, CFG, rosbag="", progress=False)
     assert not out.exists()

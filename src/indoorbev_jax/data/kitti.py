@@ -114,10 +114,11 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     disk before the rename (fsync, about 2 ms a file): a robot that loses power must not
     keep an empty file under the final name."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
+    tmp = None
+    try:  # a read-only folder fails in mkdir or mkstemp: named as the file below
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        os.close(fd)
         write(Path(tmp))
         os.chmod(tmp, _FILE_MODE)
         fd = os.open(tmp, os.O_RDONLY)
@@ -127,12 +128,14 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
             os.close(fd)
         os.replace(tmp, path)
     except OSError as e:
-        Path(tmp).unlink(missing_ok=True)
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
         # Name the file and the reason: a full disk under ndarray.tofile said only "6464
         # requested and 1024 written".
         raise OSError(e.errno, f"cannot write {path}: {e.strerror or e}") from e
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
         raise
 
 
@@ -165,23 +168,32 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
     return words.reshape(-1, 4)
 
 
+# Point gaps compared per stride. Lidars interleave emitters (the MID-360 fires 4 at once),
+# so a point's neighbour in firing order may be 2 or 4 points on: in a 40 x 30 m hall a
+# 5-column MID-360 file read as 4 columns was only 1.35x less coherent at gap 1. Stride 3
+# skips gap 4 (where a 4-column file read as 3 realigns); stride 4 skips gaps 3 and 5.
+_STEP_GAPS = {3: (1, 2, 3), 4: (1, 2, 4), 5: (1, 2, 4)}
+
+
 def _median_step(words: np.ndarray, cols: int) -> float:
-    """Median distance between consecutive finite points of ``words`` read as ``cols``
-    columns (x, y, z first)."""
+    """The least, over the gaps of ``_STEP_GAPS``, median distance between finite points
+    that many apart in ``words`` read as ``cols`` columns (x, y, z first)."""
     n = words.size // cols
     xyz = words[: n * cols].reshape(n, cols)[:, :3].astype(np.float64)
     xyz = xyz[np.isfinite(xyz).all(axis=1) & (np.abs(xyz) < 1e6).all(axis=1)]
     if len(xyz) < 64:
         return np.nan
-    return float(np.median(np.linalg.norm(np.diff(xyz, axis=0), axis=1)))
+    return min(
+        float(np.median(np.linalg.norm(xyz[gap:] - xyz[:-gap], axis=1))) for gap in _STEP_GAPS[cols]
+    )
 
 
 def _other_column_count(words: np.ndarray) -> tuple[int, float, float] | None:
     """(columns, spread as 4, spread as columns) when ``words`` read far more coherently as 3
     (x, y, z) or 5 (x, y, z, intensity, ring) columns than as 4, else None. A scan stores its
     points in firing order, so consecutive points are near; read with the wrong stride,
-    coordinates and intensities mix and the steps grow (2.2x for mid360 scans, the closest,
-    to a few hundred x for os128). A file
+    coordinates and intensities mix and the steps grow (docs/DATASET.md: 2.1x at the
+    closest, a 3-column mid360 scan in a 40 x 30 m hall, to thousands of x). A file
     of 12 or 20 bytes a point passes the size rule whenever N % 4 == 0, a quarter of them."""
     words = words[:60_000]  # about 15,000 points decide
     spread4 = _median_step(words, 4)
