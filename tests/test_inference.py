@@ -148,3 +148,29 @@ def test_identical_queries_tie_to_the_lower_index():
     ids = np.asarray(out.instance_ids[0])
     assert set(np.unique(ids)) == {0, 2}  # query 1 wins every cell; query 2 keeps none
     np.testing.assert_array_equal(out.segment_valid[0], [False, True, False])
+    # With an overlap rule that any share passes (0), a query that keeps no cell (2, or 0
+    # with its empty mask) is still no segment: segment_valid and the classes follow the map.
+    lax = panoptic_inference_from_logits(logits, masks, InferenceConfig(overlap_threshold=0.0))
+    np.testing.assert_array_equal(lax.instance_ids, out.instance_ids)
+    np.testing.assert_array_equal(lax.segment_valid[0], [False, True, False])
+    np.testing.assert_array_equal(lax.instance_classes[0], [BG, BG, 5, BG])
+
+
+@pytest.mark.parametrize("mask_threshold", [0.0, 1.0])
+def test_mask_threshold_at_the_ends_of_its_range(mask_threshold):
+    """sigmoid(x) lies strictly inside (0, 1) for finite x: at mask_threshold 1 no cell is in
+    any mask (no detection, no segment, an empty map), at 0 every cell is. Checked against
+    the float64 re-derivation, which compares the probabilities themselves."""
+    rng = np.random.default_rng(2)
+    cfg = InferenceConfig(score_threshold=0.3, mask_threshold=mask_threshold,
+                          overlap_threshold=0.0)  # fmt: skip
+    logits = (4 * rng.standard_normal((2, 6, K))).astype(np.float32)
+    masks = rng.uniform(-8.0, 8.0, (2, 6, 5, 7)).astype(np.float32)
+    out = jax.tree.map(np.asarray, panoptic_inference_from_logits(logits, masks, cfg))
+    ids, classes, scores = reference(logits, masks, cfg)
+    np.testing.assert_array_equal(out.det_masks, np.full(masks.shape, mask_threshold == 0.0))
+    np.testing.assert_array_equal(out.det_valid, np.full((2, 6), mask_threshold == 0.0))
+    np.testing.assert_array_equal(out.instance_ids, ids)
+    np.testing.assert_array_equal(out.instance_classes, classes)
+    np.testing.assert_allclose(out.det_scores, scores, rtol=1e-5, atol=1e-7)
+    assert (ids > 0).any() == (mask_threshold == 0.0)

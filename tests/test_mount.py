@@ -12,7 +12,7 @@ from indoorbev_jax import predict as P
 from indoorbev_jax.cli import main as cli_main
 from indoorbev_jax.config import Config, InferenceConfig
 from indoorbev_jax.data.dataset import pad_points
-from indoorbev_jax.mount import LidarMount, parse_rpy
+from indoorbev_jax.mount import LidarMount, parse_height, parse_rpy
 from indoorbev_jax.train import init_state
 
 # Thresholds at 0 so that an untrained model still yields objects.
@@ -78,6 +78,10 @@ def test_full_turns_and_inf_points_are_no_rotation_and_no_warning():
     assert not np.isfinite(out[0, :3]).all()
     assert LidarMount(pitch=20.0).radians_hint() is None
     assert LidarMount(pitch=0.349).radians_hint().endswith("pass 0,20,0")
+    # One fractional angle is enough to look like radians (1 rad = 57.30 deg, 0.5 rad =
+    # 28.65 deg); whole degrees alone do not.
+    assert LidarMount(roll=1.0, pitch=0.5).radians_hint().endswith("pass 57.3,28.65,0")
+    assert LidarMount(roll=1.0, pitch=2.0).radians_hint() is None
 
 
 def test_a_mount_away_from_the_trained_tilt_is_pointed_out():
@@ -111,6 +115,12 @@ def test_a_mount_away_from_the_trained_tilt_is_pointed_out():
 def test_bad_mounts_are_named():
     with pytest.raises(ValueError, match="lidar height: expected metres >= 0"):
         LidarMount(height=-1.0)
+    # 0 m (a lidar at floor level) is a height: below the trained ones, the cloud moves down.
+    assert parse_height("0") == 0.0
+    assert LidarMount(height=0.0).z_offset(TRAINED) == pytest.approx(-TRAINED[0])
+    for bad in ("-0.01", "nan", "inf", "x"):
+        with pytest.raises(ValueError, match=f"expected metres >= 0, got '{bad}'"):
+            parse_height(bad)
     with pytest.raises(ValueError, match="lidar mount pitch"):
         LidarMount(pitch=float("nan"))
     assert parse_rpy("0,-20.5,90") == (0.0, -20.5, 90.0)

@@ -183,6 +183,66 @@ def test_an_empty_or_disjoint_mask_joins_no_cluster_at_view_iou_0():
         assert int((fused.masks[0, 0, 0] >= 0).sum()) == 9, view_iou
 
 
+def _fg_logits(p):
+    """Class logits [K] whose softmax puts ``p`` on class 0 and the rest on background."""
+    probs = np.full(K, 1e-9)
+    probs[0], probs[-1] = p, 1.0 - p - (K - 2) * 1e-9
+    return np.log(probs)
+
+
+def _two_views(p_cls, row_logits):
+    """Predictions of V = Q = 2 on a 6 x 6 grid (the shapes of the test above, so that the
+    compiled fusion is reused): class-0 probabilities [V * Q] and mask logits [V * Q, 6] of
+    grid row 0 (the other rows empty), view-major."""
+    logits = np.stack([_fg_logits(p) for p in p_cls]).reshape(2, 1, 1, 2, K)
+    masks = np.full((2, 1, 1, 2, 6, 6), -10.0)
+    masks[..., 0, :] = np.reshape(row_logits, (2, 1, 1, 2, 6))
+    zeros = lambda *s: jnp.zeros((2, 1, 1, 2) + s)  # noqa: E731
+    return Predictions(logits=jnp.asarray(logits, jnp.float32), dims=zeros(3), pos=zeros(3),
+                       yaw=zeros(1), masks=jnp.asarray(masks, jnp.float32))  # fmt: skip
+
+
+@pytest.mark.parametrize(("view1_cells", "joins"), [((0, 2), True), ((3, 5), False)])
+def test_view_iou_is_inclusive(view1_cells, joins):
+    """docs/METRICS.md: a query joins a cluster when its mask IoU with the leader is
+    >= view_iou. View 0's mask has cells 0-3; view 1's the 2 cells 0-1 (IoU 2 / 4 = 0.5,
+    exactly the default view_iou: one object) or cells 3-4 (IoU 1 / 5: two objects)."""
+    rows = np.full((4, 6), -10.0)
+    rows[0, 0:4] = 5.0
+    rows[2, slice(*view1_cells)] = 5.0
+    pred = _two_views([0.9, 0.01, 0.7, 0.01], rows)  # queries 1 of each view: no mask
+    fused = fuse_views(pred, 0.5, 0.5)
+    fg = np.asarray(jax.nn.softmax(fused.logits[0, 0], -1))[:, 0]  # per slot
+    want = [(0.9 + 0.7) / 2, 0, 0, 0] if joins else [0.9 / 2, 0, 0.7 / 2, 0]
+    np.testing.assert_allclose(fg, want, atol=1e-6)
+    ref = _fuse_reference(pred, 0.5, 0.5)
+    np.testing.assert_array_equal(ref["count"][0], [2, 0, 0, 0] if joins else [1, 0, 1, 0])
+    np.testing.assert_allclose(fg, ref["fg"][0, :, 0], atol=1e-6)
+
+
+def test_clusters_form_in_decreasing_detection_score():
+    """docs/METRICS.md: greedy in decreasing score = p_cls * mean mask probability, not in
+    decreasing p_cls. View 0: A (p_cls 0.9, mask probability 0.6: score 0.54) and B (0.85,
+    0.993: 0.84); view 1: C (0.8, 0.993: 0.79) overlaps both with IoU 3 / 5, and D has no
+    mask. B leads first and takes C; A is left alone. In p_cls order A would take C."""
+    rows = np.full((4, 6), -10.0)
+    rows[0, 0:4] = np.log(0.6 / 0.4)  # A: cells 0-3
+    rows[1, 2:6] = 5.0  # B: cells 2-5
+    rows[2, 1:5] = 5.0  # C: cells 1-4
+    pred = _two_views([0.9, 0.85, 0.8, 0.01], rows)
+    fused = fuse_views(pred, 0.5, 0.5)
+    fg = np.asarray(jax.nn.softmax(fused.logits[0, 0], -1))[:, 0]  # slots A, B, C, D
+    np.testing.assert_allclose(fg, [0.9 / 2, (0.85 + 0.8) / 2, 0.0, 0.0], atol=1e-6)
+    ref = _fuse_reference(pred, 0.5, 0.5)
+    np.testing.assert_array_equal(ref["count"][0], [1, 2, 0, 0])
+    np.testing.assert_allclose(fg, ref["fg"][0, :, 0], atol=1e-6)
+    # B's slot holds the mean of B's and C's mask probabilities: cell 1 is C's alone.
+    mask_prob = np.asarray(jax.nn.sigmoid(fused.masks[0, 0, 1, 0]))
+    sig = lambda x: 1 / (1 + np.exp(-x))  # noqa: E731
+    np.testing.assert_allclose(mask_prob[:2], [sig(-10.0), (sig(-10.0) + sig(5.0)) / 2],
+                               atol=1e-6)  # fmt: skip
+
+
 def test_identical_views_fuse_to_the_plain_inference():
     rng = np.random.default_rng(5)
     pred = _random_views(rng, views=1, b=2, q=6, h=8, w=8, spread=0.0)

@@ -1,9 +1,11 @@
 """BEV pictures: points land on their pixels (x right, y up); nothing off the grid drawn."""
 
 import numpy as np
+from PIL import Image
 
 from indoorbev_jax import viz
-from indoorbev_jax.config import CLASS_NAMES, Config
+from indoorbev_jax.config import CLASS_NAMES, Config, GridConfig
+from indoorbev_jax.data import kitti
 
 GRID = Config.tiny().grid  # x, y in [-5, 5] m, 0.25 m cells: a 600 x 600 picture, 60 px/m
 
@@ -27,3 +29,120 @@ def test_points_off_the_grid_and_nan_points_are_not_drawn():
     np.testing.assert_array_equal(_changed([[4.0, 1.0, 0.5, 0.3], *outside]), inside)
     # The grid's far edges are on it: drawn on the last pixels.
     assert _changed([[5.0, -5.0, 0.5, 0.3]]).max(0).tolist() == [599, 599]
+
+
+def _pixel(x, y):
+    """(row, column) of a lidar-frame point in a GRID picture (x right, y up), from the grid."""
+    s = 600 // GRID.shape[1]
+    return (int((GRID.y_range[1] - y) / GRID.cell_size * s),
+            int((x - GRID.x_range[0]) / GRID.cell_size * s))  # fmt: skip
+
+
+def _boxes(centres, yaws):
+    n = len(centres)
+    pos = [[x, y, 0.5] for x, y in centres]
+    return kitti.ObjectLabels([0] * n, [[1.0, 1.0, 1.0]] * n, pos, list(yaws), [0] * n)
+
+
+def test_footprints_lie_under_their_boxes_in_the_boxes_colours():
+    """Footprint ids were drawn mirrored in y (away from their points and boxes), or each in
+    the next box's colour: id k + 1 is object k, its fill a dimmed copy of box k's outline."""
+    centres = [(2.0, 3.0), (-2.0, -3.0)]
+    h, w = GRID.shape
+    # Cell centres as GridConfig documents them: row i along y, column j along x.
+    ys = GRID.y_range[0] + (np.arange(h) + 0.5) * GRID.cell_size
+    xs = GRID.x_range[0] + (np.arange(w) + 0.5) * GRID.cell_size
+    ids = np.zeros((h, w), np.int32)
+    for k, (x, y) in enumerate(centres):
+        ids[(np.abs(ys[:, None] - y) < 0.5) & (np.abs(xs[None] - x) < 0.5)] = k + 1
+    img = np.asarray(viz.render_bev(np.zeros((0, 4)), _boxes(centres, [0, 0]), ids, GRID,
+                                    CLASS_NAMES)).astype(int)  # fmt: skip
+    for x, y in centres:
+        outline = img[_pixel(x - 0.5, y)]  # the box's left edge
+        fill = img[_pixel(x - 0.25, y + 0.25)]  # inside the box, clear of the tick and text
+        np.testing.assert_array_equal(fill, outline // 2 + 10, err_msg=f"box at {(x, y)}")
+        # The mirror image (y -> -y) of the fill is background: no other footprint there.
+        np.testing.assert_array_equal(img[_pixel(x - 0.25, -y - 0.25)], [20, 20, 20])
+    assert not np.array_equal(img[_pixel(1.75, 3.25)], img[_pixel(-2.25, -2.75)])
+
+
+def test_heading_tick_points_along_the_yaw():
+    """Yaw is about +z from +x (docs/DATASET.md): yaw 0 ticks towards +x (right), yaw pi/2
+    towards +y (up). x and y were swapped."""
+    for yaw, along, across in ((0.0, (2.45, 3.0), (2.0, 3.45)),
+                               (np.pi / 2, (2.0, 3.45), (2.45, 3.0))):  # fmt: skip
+        img = np.asarray(viz.render_bev(np.zeros((0, 4)), _boxes([(2.0, 3.0)], [yaw]), None,
+                                        GRID, CLASS_NAMES))  # fmt: skip
+        outline = img[_pixel(1.5, 3.0)]
+        assert outline.tolist() != [20, 20, 20]
+        np.testing.assert_array_equal(img[_pixel(*along)], outline, err_msg=f"yaw {yaw}")
+        np.testing.assert_array_equal(img[_pixel(*across)], [20, 20, 20], err_msg=f"yaw {yaw}")
+
+
+def test_height_ramp_runs_blue_green_red():
+    """Low z blue, mid green, high red (the ramp's halves were swapped)."""
+    lo, hi = GRID.z_range
+    low, mid, high = viz.height_colour(np.array([lo, (lo + hi) / 2, hi]), GRID.z_range)
+    assert low.argmax() == 2 and mid.argmax() == 1 and high.argmax() == 0, (low, mid, high)
+
+
+def test_higher_points_are_drawn_on_top():
+    """Of two points on one pixel the higher is drawn last, whatever their order."""
+    lo, hi = GRID.z_range
+    pts = np.array([[1.0, 1.0, hi - 0.01, 0.0], [1.0, 1.0, lo + 0.01, 0.0]])
+    for order in (pts, pts[::-1]):
+        img = np.asarray(viz.render_bev(order, None, None, GRID, CLASS_NAMES))
+        dot = img[_pixel(1.0, 1.0)]
+        assert dot.argmax() == 0, dot  # red: the high point
+        np.testing.assert_array_equal(dot, viz.height_colour(pts[:1, 2], GRID.z_range)[0])
+
+
+def test_pictures_are_at_least_min_size_wide():
+    """The scale is the smallest whole number of pixels a cell that makes the picture
+    min_size wide (it rounded down: a 500-cell grid gave a 500-pixel picture)."""
+    for cell, x_range, want in ((0.25, (-5.0, 5.0), 15), (0.02, (-5.0, 5.0), 2),
+                                (1.0, (0.0, 7.0), 86)):  # fmt: skip
+        grid = GridConfig(x_range=x_range, cell_size=cell)
+        w = grid.shape[1]
+        scale = viz.picture_scale(grid)
+        assert scale * w >= 600 and (scale - 1) * w < 600 and scale == want, (grid, scale)
+        assert viz.picture_scale(grid, pixels_per_cell=want + 3) == want + 3
+    pic = viz.render_bev(np.zeros((0, 4)), None, None, GridConfig(cell_size=0.02), CLASS_NAMES)
+    assert pic.size == (1000, 1000)
+
+
+def test_masks_image_blends_overlaps_as_the_mean_colour():
+    """An overlap is the mean of the masks' colours (the sum was written, wrapping uint8)."""
+    masks = np.zeros((2, 4, 4), bool)
+    masks[0, :2] = True
+    masks[1, 1:3] = True  # row 1 in both, row 3 in neither
+    img = viz.masks_image(masks).astype(int)
+    a, b = img[0, 0], img[2, 0]
+    assert not np.array_equal(a, b)
+    assert np.abs(img[1] - (a + b) / 2).max() <= 0.5 + 1e-9
+    np.testing.assert_array_equal(img[3], 20)
+
+
+def test_feature_image_red_is_the_first_principal_component():
+    """Two regions whose features differ along one direction are black and white in red
+    (the first component), whatever offset the features share: they were not centred, so
+    the offset took the first component."""
+    rng = np.random.default_rng(0)
+    feat = 100.0 + np.zeros((8, 8, 4))  # a common offset along (1, 1, 1, 1)
+    feat[:, :4, 0] += 1.0
+    feat[:, :4, 1] -= 1.0  # the left half differs along ch0 - ch1
+    feat += 0.01 * rng.normal(size=feat.shape)
+    red = viz.feature_image(feat)[..., 0].astype(float)
+    left, right = red[:, :4].mean(), red[:, 4:].mean()
+    assert abs(left - right) > 230, (left, right)
+
+
+def test_panels_show_every_image_whole_below_its_title():
+    """The titles' band was not added to the height: the images' last 18 rows were cut."""
+    a = Image.fromarray(np.full((50, 40, 3), 200, np.uint8))
+    b = Image.fromarray(np.full((30, 20, 3), 100, np.uint8))
+    out = np.asarray(viz.panels([("a", a), ("b", b)], gap=8))
+    assert out.shape[1] == 40 + 8 + 20
+    assert (out[:, :40] == 200).all(-1).all(-1).sum() == 50  # rows wholly image a
+    assert (out[:, 48:] == 100).all(-1).all(-1).sum() == 30
+    assert out.shape[0] > 50 and (out[-50:, :40] == 200).all()

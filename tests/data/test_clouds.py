@@ -48,8 +48,9 @@ def _structured(points, layout=LAYOUT):
     return out
 
 
-def _write_pcd(path, points, data="binary", layout=LAYOUT, height=1):
-    s = _structured(points, layout)
+def _write_pcd(path, points, data="binary", layout=LAYOUT, height=1, s=None):
+    """``points`` in a PCD file of ``layout``; ``s``: the structured array to write instead."""
+    s = _structured(points, layout) if s is None else s
     names, _, sizes, types, counts = zip(*layout, strict=True)
     header = _header(names, sizes, types, counts, len(points), data, height)
     if data == "binary":
@@ -194,3 +195,41 @@ def test_a_bad_file_in_a_folder_is_a_bad_frame_not_a_stop(tmp_path, monkeypatch)
     count, frames = P.open_input(tmp_path)
     a, b = list(frames)
     assert count == 2 and isinstance(a.error, ValueError) and b.error is None
+
+
+@pytest.mark.parametrize("data", ["binary", "ascii"])
+def test_a_count_2_intensity_reads_its_first_value(tmp_path, data):
+    """The module docstring: a COUNT > 1 field reads its first value. Intensity stored with
+    COUNT 2 (say a first and a last return's), after a COUNT 3 field and before others: the
+    first of the two, never the second (-7) nor a neighbour's column."""
+    layout = [("normal", "<f4", 4, "F", 3), ("x", "<f4", 4, "F", 1), ("y", "<f4", 4, "F", 1),
+              ("z", "<f4", 4, "F", 1), ("intensity", "<f4", 4, "F", 2),
+              ("ring", "<u2", 2, "U", 1)]  # fmt: skip
+    s = np.zeros(len(POINTS), [(n, t, (c,) if c > 1 else ()) for n, t, _, _, c in layout])
+    for k, name in enumerate("xyz"):
+        s[name] = POINTS[:, k]
+    s["intensity"] = np.c_[POINTS[:, 3], np.full(len(POINTS), -7.0)]
+    s["normal"], s["ring"] = 1.0, 3
+    _write_pcd(tmp_path / "c.pcd", POINTS, data, layout, s=s)
+    np.testing.assert_array_equal(clouds.read_pcd(tmp_path / "c.pcd"), POINTS)
+
+
+def test_trailing_bytes_headers_without_height_and_upper_case_suffixes(tmp_path):
+    """Bytes after a binary PCD's points (a trailing newline some writers add) are not
+    points; a header without HEIGHT and POINTS (PCD 0.5) has WIDTH x 1 points; a .PCD,
+    .NPY or .BIN file (cameras, Windows tools) is read as its lower-case suffix would be."""
+    _write_pcd(tmp_path / "t.pcd", POINTS)
+    (tmp_path / "t.pcd").write_bytes((tmp_path / "t.pcd").read_bytes() + b"\n")
+    np.testing.assert_array_equal(clouds.read_pcd(tmp_path / "t.pcd"), POINTS)
+    header = b"VERSION .5\nFIELDS x y z intensity\nSIZE 4 4 4 4\nTYPE F F F F\nWIDTH 50\n"
+    (tmp_path / "b05.pcd").write_bytes(header + b"DATA binary\n" + POINTS.tobytes())
+    rows = "".join(" ".join(map(repr, p)) + "\n" for p in POINTS.astype(np.float64).tolist())
+    (tmp_path / "a05.pcd").write_bytes(header + b"DATA ascii\n" + rows.encode())
+    for name in ("b05", "a05"):
+        np.testing.assert_array_equal(clouds.read_pcd(tmp_path / f"{name}.pcd"), POINTS)
+    _write_pcd(tmp_path / "SCAN.PCD", POINTS)
+    np.save(tmp_path / "scan.npy", POINTS)
+    (tmp_path / "scan.npy").rename(tmp_path / "SCAN.NPY")
+    kitti.write_points(tmp_path / "SCAN.BIN", POINTS)
+    for suffix in ("PCD", "NPY", "BIN"):
+        np.testing.assert_array_equal(clouds.read_cloud(tmp_path / f"SCAN.{suffix}"), POINTS)

@@ -116,6 +116,11 @@ def test_bad_patterns_raise_naming_the_field():
     # These were a ZeroDivisionError, inf start times, or elevations folding back past 90.
     with pytest.raises(ValueError, match=r"Mid360Pattern.num_emitters must be an int >= 1"):
         patterns.Mid360Pattern(num_emitters=0)
+    # 20,000 rays a frame do not split over 3 emitters (frame() failed with a reshape error);
+    # over 8 they do.
+    with pytest.raises(ValueError, match=r"whole multiple of num_emitters \(3\)"):
+        patterns.Mid360Pattern(num_emitters=3)
+    assert patterns.Mid360Pattern(num_emitters=8).frame(0).directions.shape == (20_000, 3)
     for make in (patterns.Mid360Pattern, patterns.GridPattern,
                  lambda **kw: patterns.SpinningPattern((0.0,), **kw)):  # fmt: skip
         name = make().__class__.__name__
@@ -153,3 +158,49 @@ def test_covers_every_ray_of_a_frame_and_nothing_past_the_limits():
     behind = patterns.spherical_to_unit(jnp.deg2rad(jnp.float32(120.0)), jnp.float32(0.0))
     assert not bool(grid_part.covers(behind))
     assert bool(patterns.GridPattern(36, 8).covers(behind))
+
+
+def test_mid360_elevations_are_uniform_in_sin_elevation():
+    """Equal solid angle, equal rays: sin(elevation) of one frame's rays fills
+    [sin(-7 deg), sin(52 deg)] evenly (uniform in the angle itself crowded the top)."""
+    s = np.asarray(_mid_frame(7).directions, np.float64)[:, 2]
+    hist, _ = np.histogram(s, bins=20, range=(np.sin(np.radians(-7.0)), np.sin(np.radians(52.0))))
+    assert hist.sum() == MID.num_rays
+    assert hist.min() > 0.97 * hist.mean() and hist.max() < 1.03 * hist.mean(), hist
+
+
+def test_mid360_firing_times_span_the_frame_at_the_point_rate():
+    """points_per_second counts all emitters: the E emitters fire together every
+    E / points_per_second s, so a frame's firings fill its 1 / frame_rate s (they took a
+    quarter of it)."""
+    other = patterns.Mid360Pattern(points_per_second=40_000, num_emitters=2)
+    for pattern, frame in ((MID, _mid_frame(0)), (other, other.frame(0))):
+        t = np.asarray(frame.time_offsets, np.float64)
+        e, per = pattern.num_emitters, pattern.num_rays // pattern.num_emitters
+        step = e / pattern.points_per_second
+        times, counts = np.unique(t, return_counts=True)
+        np.testing.assert_allclose(times, np.arange(per) * step, rtol=1e-6, atol=1e-9)
+        assert (counts == e).all()  # the emitters fire together
+        np.testing.assert_allclose(t.max() + step, 1.0 / pattern.frame_rate, rtol=1e-6)
+
+
+def test_mid360_frames_land_between_the_previous_frames_azimuths():
+    """Frame k + 1 is rotated by a golden-ratio fraction of a slot: none of its azimuths
+    repeats one of frame k's (without the shift every frame fired the same azimuths)."""
+    spacing = 2 * np.pi / MID.num_rays  # mean azimuth spacing of one frame's rays
+    for k in (0, 1, 12345):
+        prev = np.sort(np.radians(az_el_deg(_mid_frame(k).directions)[0]))
+        nxt = np.radians(az_el_deg(_mid_frame(k + 1).directions)[0])
+        ring = np.concatenate([prev[-1:] - 2 * np.pi, prev, prev[:1] + 2 * np.pi])
+        i = np.searchsorted(ring, nxt)
+        gap = np.minimum(nxt - ring[i - 1], ring[i] - nxt) / spacing
+        assert gap.min() > 0.3, (k, gap.min())
+
+
+def test_full_turn_grid_has_no_repeated_seam_column():
+    """A full turn excludes its end: 360 columns 1 deg apart, 720 distinct rays for
+    GridPattern(360, 2) (with the end included -180 and 180 deg both fired)."""
+    d = np.asarray(patterns.GridPattern(360, 2).frame(0).directions, np.float64)
+    assert len(np.unique(np.round(d, 5), axis=0)) == 720
+    columns = np.unwrap(np.arctan2(d[::2, 1], d[::2, 0]))
+    np.testing.assert_allclose(np.degrees(np.diff(columns)), 1.0, atol=1e-4)

@@ -1,5 +1,7 @@
 """Sensor model: sensor-frame points, validity, noise/dropout statistics, intensity."""
 
+import math
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -83,6 +85,43 @@ def test_noise_dropout_and_range_limits(scene):
         assert not np.any(np.asarray(_scan(mx, dx, pose, dirs, jax.random.key(0), c).valid))
 
 
+def test_range_limits_apply_to_the_noisy_range(scene):
+    """min_range/max_range judge the measured (noisy) range, not the true distance: with
+    limits 2 cm either side of a wall 3.9 m away and 5 cm noise, every valid point's range
+    lies within them and the share kept is P(|N(0, 0.05)| <= 0.02) (all were kept, with
+    ranges up to 20 cm past the limits)."""
+    m, d, mx, dx = scene
+    pose = sensor.Pose(jnp.array([0.0, 0.0, 1.0]), jnp.eye(3))
+    dirs = np.tile(np.array([[1.0, 0.0, 0.0]], np.float32), (20000, 1))  # the wall at 3.9 m
+    cfg = sensor.SensorConfig(min_range=3.88, max_range=3.92, range_noise_std=0.05)
+    s = _scan(mx, dx, pose, dirs, jax.random.key(1), cfg)
+    np.testing.assert_allclose(np.asarray(s.distance), 3.9, atol=1e-4)  # the noiseless range
+    valid = np.asarray(s.valid)
+    rng = np.linalg.norm(np.asarray(s.points)[valid, :3], axis=1)
+    assert rng.min() >= 3.88 - 1e-6 and rng.max() <= 3.92 + 1e-6, (rng.min(), rng.max())
+    expected = math.erf(0.02 / 0.05 / math.sqrt(2.0))  # 0.311; binomial sd 0.003
+    assert abs(valid.mean() - expected) < 0.015, (valid.mean(), expected)
+
+
+def test_pose_from_body_is_the_body_frame_not_its_centre_of_mass():
+    """A body whose geom sits off its origin: the pose is the body frame (xpos), where the
+    XML puts it, not the inertial frame (xipos, 0.4 m along the body's x)."""
+    m, d = _edited_scene(
+        "</worldbody>",
+        '<body name="robot" pos="1 2 0.3" euler="0 0 90"><geom type="box" pos="0.4 0 0" '
+        'size="0.2 0.1 0.1"/></body></worldbody>',
+    )
+    mujoco.mj_forward(m, d)
+    body = m.body("robot").id
+    assert np.linalg.norm(d.xipos[body] - d.xpos[body]) > 0.3  # the two frames differ
+    for data in (d, mjx.put_data(m, d)):
+        pose = sensor.pose_from_body(data, body)
+        np.testing.assert_allclose(np.asarray(pose.pos), [1.0, 2.0, 0.3], atol=1e-6)
+        np.testing.assert_allclose(
+            np.asarray(pose.rot), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-6
+        )
+
+
 def test_intensity_from_reflectivity_and_incidence(scene):
     """Intensity = reflectivity * cos(incidence) on the floor plane (normal +z)."""
     m, d, mx, dx = scene
@@ -94,6 +133,10 @@ def test_intensity_from_reflectivity_and_incidence(scene):
     s = _scan(mx, dx, pose, dirs, jax.random.key(0), cfg, reflectivity=refl)
     np.testing.assert_array_equal(np.asarray(s.geom_id), 0)
     np.testing.assert_allclose(np.asarray(s.points[:, 3]), 0.8 * np.abs(np.sin(el)), atol=1e-5)
+    # A reflectivity above 1 (retro-reflective tape) still gives an intensity within [0, 1].
+    s = _scan(mx, dx, pose, dirs, jax.random.key(0), cfg, reflectivity=1.5 * refl / 0.8)
+    want = np.minimum(1.5 * np.abs(np.sin(el)), 1.0)  # 1.48 and 1.30 clip, 0.75 and 0.51 not
+    np.testing.assert_allclose(np.asarray(s.points[:, 3]), want, atol=1e-5)
 
 
 def test_batched_scenes_and_poses(scene):
@@ -115,6 +158,14 @@ def test_batched_scenes_and_poses(scene):
     sp = _scan(mx, dx, pose, dirs, jax.random.key(0), cfg)
     np.testing.assert_array_equal(np.asarray(sp.valid), np.asarray(sb.valid))
     np.testing.assert_allclose(np.asarray(sp.points), np.asarray(sb.points), atol=1e-6)
+    # One position [3] with B rotations [B, 3, 3]: B scans from that position (it raised,
+    # counting the poses by the positions only), each as the single pose's scan.
+    turned = _scan(mx, dx, sensor.Pose(pose.pos[0], pose.rot), dirs, jax.random.key(0), cfg)
+    assert turned.points.shape == (2, 2000, 4)
+    for b in range(2):
+        s1 = _scan(mx, dx, sensor.Pose(pose.pos[0], pose.rot[b]), dirs, jax.random.key(0), cfg)
+        np.testing.assert_array_equal(np.asarray(turned.valid[b]), np.asarray(s1.valid))
+        np.testing.assert_allclose(np.asarray(turned.points[b]), np.asarray(s1.points), atol=1e-5)
     # A batch of one pose keeps its axis (it was dropped, unlike cast_rays'), scene batched
     # or not.
     one = sensor.Pose(pose.pos[:1], pose.rot[:1])

@@ -1,0 +1,94 @@
+"""``indoorbev eval`` (evaluate.py): KITTI-layout folders to metrics, bad folders named, the
+JSON keeping real zeros. The metric functions themselves are checked against pycocotools
+and numpy re-derivations in test_metrics.py; here the values follow from the definitions."""
+
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+
+from indoorbev_jax.cli import main
+from indoorbev_jax.config import Config
+from indoorbev_jax.data import kitti
+from indoorbev_jax.evaluate import evaluate_folders, to_json
+
+CFG = Config.tiny()  # grid -5..5 m, 0.25 m cells
+NAMES = CFG.data.class_names
+
+
+def _labels(xy, scores=None):
+    """Chairs of 0.5 x 0.5 x 1 m, heading 0, centred on ``xy`` [M, 2] (whole metres: each
+    covers its own 2 x 2 cells)."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    n = len(xy)
+    dims, pos = np.tile([0.5, 0.5, 1.0], (n, 1)), np.c_[xy, np.full(n, 0.5)]
+    return kitti.ObjectLabels([1] * n, dims, pos, np.zeros(n), np.zeros(n), scores)
+
+
+def test_more_than_16_boxes_without_masks(tmp_path):
+    """Without mask_2 the boxes are rasterised in batches padded to a multiple of 16: 20
+    objects, 19 found and the last (lowest-scored) one placed where there is none. COCO AP:
+    precision 1 at the 101 recall points up to recall 19 / 20 (in float64, as pycocotools
+    compares them), 0 past it; PQ: 19 exact matches, one false positive and one miss,
+    RQ = 19 / (19 + 1 / 2 + 1 / 2)."""
+    gt = np.stack(np.meshgrid(np.arange(-3.0, 2.0), np.arange(-3.0, 1.0)), -1).reshape(-1, 2)
+    pred = gt.copy()
+    pred[-1] = (3.0, 3.0)
+    kitti.write_labels(tmp_path / "gt/label_2/a.txt", _labels(gt), NAMES)
+    scores = np.linspace(0.9, 0.5, 20)
+    kitti.write_labels(tmp_path / "pred/label_2/a.txt", _labels(pred, scores), NAMES)
+    res = evaluate_folders(tmp_path / "gt", tmp_path / "pred", CFG)
+    ap = np.mean(np.linspace(0.0, 1.0, 101) <= 19 / 20)
+    assert res["ap"] == {0.25: pytest.approx(ap), 0.5: pytest.approx(ap)}
+    assert res["sq"] == pytest.approx(1.0) and res["rq"] == pytest.approx(0.95)
+    assert res["pq"] == pytest.approx(0.95)
+
+
+def test_a_mask_id_past_the_label_lines_is_named(tmp_path):
+    """Mask id k is the object on line k: an id 2 in a mask of a one-object label file is a
+    DatasetError naming the PNG, not the metrics' ValueError about ids."""
+    kitti.write_labels(tmp_path / "gt/label_2/a.txt", _labels([[0.0, 0.0]]), NAMES)
+    ids = np.zeros(CFG.grid.shape, np.int32)
+    ids[5:9, 5:9] = 2
+    kitti.write_mask(tmp_path / "gt/mask_2/a.png", ids)
+    kitti.write_labels(tmp_path / "pred/label_2/a.txt", _labels([[0.0, 0.0]], [0.9]), NAMES)
+    mask = tmp_path / "gt/mask_2/a.png"
+    message = rf"^{re.escape(str(mask))}: instance id 2 but the label file has only 1 objects"
+    with pytest.raises(kitti.DatasetError, match=message):
+        evaluate_folders(tmp_path / "gt", tmp_path / "pred", CFG)
+
+
+def test_json_keeps_real_zeros_and_nulls_undefined_values(tmp_path, capsys):
+    """Predictions that miss every object score AP 0 and PQ 0: real values, written as 0.0;
+    undefined ones (NaN, AP's -1 for a class without objects) become null."""
+    kitti.write_labels(tmp_path / "gt/label_2/a.txt", _labels([[-2.0, -2.0], [-1.0, -2.0]]), NAMES)
+    far = _labels([[2.0, 2.0], [3.0, 2.0]], [0.9, 0.8])
+    kitti.write_labels(tmp_path / "pred/label_2/a.txt", far, NAMES)
+    out = tmp_path / "m.json"
+    argv = ["eval", "--gt", str(tmp_path / "gt"), "--pred", str(tmp_path / "pred")]
+    assert main([*argv, "--preset", "tiny", "--json", str(out)]) == 0
+    capsys.readouterr()
+    res = json.loads(out.read_text())
+    assert res["ap"] == {"0.25": 0.0, "0.5": 0.0}
+    assert res["pq"] == 0.0 and res["rq"] == 0.0
+    undefined = {"ap": {0.25: -1.0, 0.5: 0.0}, "pq": 0.0, "sq": math.nan, "frames": 3}
+    assert json.loads(to_json(undefined)) == {"ap": {"0.25": None, "0.5": 0.0}, "pq": 0.0,
+                                              "sq": None, "frames": 3}  # fmt: skip
+
+
+def test_an_empty_ground_truth_folder_is_named(tmp_path, capsys):
+    """Without --split the frames are <gt>/label_2's files: the messages name that folder."""
+    (tmp_path / "gt/label_2").mkdir(parents=True)
+    (tmp_path / "pred/label_2").mkdir(parents=True)
+    argv = ["eval", "--gt", str(tmp_path / "gt"), "--pred", str(tmp_path / "pred"), "--preset",
+            "tiny"]  # fmt: skip
+    assert main(argv) == 1
+    label_2 = tmp_path / "gt" / "label_2"
+    assert f"error: {label_2}: no label files (*.txt)" in capsys.readouterr().out
+    kitti.write_labels(label_2 / "a.txt", _labels([[0.0, 0.0]]), NAMES)
+    assert main(argv) == 1
+    assert f"error: {label_2}: 1 of 1 frames have no prediction label file" in (
+        capsys.readouterr().out
+    )
