@@ -371,4 +371,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    from indoorbev_jax.cli import exit_with
+
+    exit_with(main, "bench_lidar.py")  # Ctrl-C: one line and status 130

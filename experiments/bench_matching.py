@@ -190,4 +190,6 @@ def main(argv: list[str] | None = None) -> None:
 
 if __name__ == "__main__":
     jnp.zeros(())  # initialise the backend before timing anything
-    main()
+    from indoorbev_jax.cli import exit_with
+
+    exit_with(main, "bench_matching.py")  # Ctrl-C: one line and status 130

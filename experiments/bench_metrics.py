@@ -205,4 +205,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from indoorbev_jax.cli import exit_with
+
+    exit_with(main, "bench_metrics.py")  # Ctrl-C: one line and status 130

@@ -213,4 +213,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from indoorbev_jax.cli import exit_with
+
+    exit_with(main, "bench_ros2.py")  # Ctrl-C: one line and status 130

@@ -89,4 +89,6 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from indoorbev_jax.cli import exit_with
+
+    exit_with(main, "bench_train.py")  # Ctrl-C: one line and status 130

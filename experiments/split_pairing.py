@@ -51,4 +51,6 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    from indoorbev_jax.cli import exit_with
+
+    exit_with(main, "split_pairing.py")  # Ctrl-C: one line and status 130

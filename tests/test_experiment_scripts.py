@@ -554,3 +554,25 @@ def test_plot_curves_labels_runs_of_one_name_by_their_paths(tmp_path):
     (tmp_path / "sw" / "sweep.jsonl").write_text("")
     with pytest.raises(SystemExit, match=r"sw/metrics\.jsonl: no such file: .*a sweep's workdir"):
         plot.read_log(tmp_path / "sw")
+
+
+def test_ctrl_c_stops_an_experiment_script_with_one_line(tmp_path):
+    """The experiment scripts called main() bare: Ctrl-C in `make demo` printed a traceback
+    of about 45 lines and often crashed with a segmentation fault (XLA compiling)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    args = ["--out", str(tmp_path / "o"), "--frames", "1"]
+    proc = subprocess.Popen(
+        [sys.executable, str(REPO / "experiments" / "demo.py"), *args],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "JAX_PLATFORMS": "cpu"},
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # even if ignored
+    )  # fmt: skip
+    assert proc.stdout.readline().startswith("model: ")  # main runs, under exit_with
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines()[-1] == "demo.py: interrupted"

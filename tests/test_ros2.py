@@ -730,6 +730,8 @@ import os, signal, time
 from indoorbev_jax.cli import exit_with
 from indoorbev_jax.ros2 import runtime
 
+signal.signal(signal.SIGINT, signal.default_int_handler)  # even if inherited ignored
+
 def main():
     try:  # as Python does with a KeyboardInterrupt raised in a garbage-collector callback
         os.kill(os.getpid(), signal.SIGINT)

@@ -521,7 +521,8 @@ def exit_with(main_fn, prog: str):
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(INTERRUPTED)
-    sys.exit(status)
+    # A main that returns a result for Python callers (a dict, say) succeeded.
+    sys.exit(status if isinstance(status, int) else 0)
 
 
 def entry() -> None:
