@@ -428,3 +428,122 @@ def test_database_keeps_points_evenly_spaced_over_each_object():
         expected = rows[np.arange(64) * len(rows) // 64]
         # Intensity is copied unchanged: it identifies the rows kept.
         np.testing.assert_array_equal(db.points[k, :, 3], np.asarray(frame.points)[expected, 3])
+
+
+def _edge_objects_frame():
+    """A frame without points whose three objects are cut by the grid's edges: a shelf by
+    +x, a cabinet by -y, a sofa in the (-x, +y) corner."""
+    (x0, x1), (y0, y1) = GRID.x_range, GRID.y_range
+    labels = ObjectLabels(
+        classes=[3, 4, 2], dims=[[2.0, 1.2, 1.8], [1.0, 1.4, 1.9], [1.8, 1.0, 0.8]],
+        pos=[[x1 - 0.6, 0.0, 0.9], [-1.5, y0 + 0.4, 0.95], [x0 + 0.5, y1 - 0.3, 0.4]],
+        yaw=[0.0, 0.0, 0.3], occlusion=[0, 0, 0],
+    )  # fmt: skip
+    n = CFG.data.max_points
+    return jax.tree.map(jnp.asarray, Batch(
+        points=np.zeros((n, 4), np.float32), point_valid=np.zeros(n, bool),
+        targets=make_targets(labels, GRID, CFG.data.max_objects),
+    ))  # fmt: skip
+
+
+def test_erosion_reads_cells_beyond_the_grid_as_set():
+    """Footprints cut by the grid's edge erode as scipy's binary erosion with border value 1:
+    their cells on the edge stay (an object goes on beyond it). Reading outside as empty
+    ate the edge row or column and passed every test (a mutation audit)."""
+    frame = _edge_objects_frame()
+    cfg = dataclasses.replace(OFF, mask_perturb_prob=1.0)
+    out = jax.jit(jax.vmap(lambda k: aug.mask_perturbation(k, frame, GRID, cfg)))(
+        jax.random.split(jax.random.key(0), 16)
+    )
+    square = np.ones((3, 3), bool)
+    for k, mask in enumerate(np.asarray(frame.targets.masks[:3])):
+        edge = mask[0].any() | mask[-1].any() | mask[:, 0].any() | mask[:, -1].any()
+        assert edge, k
+        dilated = ndimage.binary_dilation(mask, square)
+        eroded = ndimage.binary_erosion(mask, square, border_value=1)
+        assert eroded.any() and (eroded != ndimage.binary_erosion(mask, square)).any()
+        new = np.asarray(out.targets.masks[:, k])
+        is_dilated, is_eroded = (new == dilated).all((1, 2)), (new == eroded).all((1, 2))
+        assert (is_dilated | is_eroded).all(), k
+        assert 3 <= is_eroded.sum() <= 13, k  # a fair coin per draw: both kinds occur
+
+
+def test_database_leaves_out_objects_cut_by_any_grid_edge():
+    """An object whose box crosses any of the grid's four edges (footprint and points cut
+    off) stays out of the database, the +x edge too (only three edges were checked and the
+    tests cut the -x one; a mutation audit); the objects wholly inside are all in it."""
+    frame = make_frame()
+    base = frame.targets
+    (x0, x1), (y0, y1) = GRID.x_range, GRID.y_range
+    cut = ObjectLabels(
+        classes=[3, 4, 5, 7], dims=[[1.0, 0.4, 1.8]] * 4,
+        pos=[[x1 - 0.1, -2.5, 0.9], [x0 + 0.1, 2.5, 0.9], [2.5, y1 - 0.1, 0.9],
+             [-2.5, y0 + 0.1, 0.9]],
+        yaw=[0.0] * 4, occlusion=[0] * 4,
+    )  # fmt: skip
+    v = np.asarray(base.valid)
+    labels = ObjectLabels(
+        classes=np.r_[np.asarray(base.classes)[v], cut.classes],
+        dims=np.r_[np.asarray(base.dims)[v], cut.dims],
+        pos=np.r_[np.asarray(base.pos)[v], cut.pos],
+        yaw=np.r_[np.asarray(base.yaw)[v], cut.yaw],
+        occlusion=[0] * (v.sum() + 4),
+    )
+    # Which boxes lie wholly inside the grid, from their corners.
+    c, s = np.cos(labels.yaw), np.sin(labels.yaw)
+    corners = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]])[None] * labels.dims[:, None, :2] / 2
+    xs = labels.pos[:, None, 0] + c[:, None] * corners[..., 0] - s[:, None] * corners[..., 1]
+    ys = labels.pos[:, None, 1] + s[:, None] * corners[..., 0] + c[:, None] * corners[..., 1]
+    inside = ((xs > x0) & (xs < x1) & (ys > y0) & (ys < y1)).all(1)
+    assert inside.sum() == 3 and (~inside).sum() == 4
+    frame = frame.replace(targets=jax.tree.map(jnp.asarray, make_targets(labels, GRID, 8)))
+    db = aug.build_object_database(jax.tree.map(lambda a: a[None], frame), GRID, max_points=64)
+    assert db.classes.tolist() == labels.classes[inside].tolist()
+
+
+@pytest.fixture(scope="module")
+def database_256():
+    """The database of ``make_frame(0)`` with P = 256 points an object (more than each has)."""
+    return aug.build_object_database(jax.tree.map(lambda a: a[None], make_frame(0)), GRID, 256)
+
+
+def test_database_keeps_each_point_once_below_max_points(database_256):
+    """An object with fewer points than P keeps each of them once, in cloud order, and its
+    other slots stay empty (picks spread over P repeated points: 256 kept out of ~150; a
+    mutation audit)."""
+    frame, db = make_frame(0), database_256
+    t = frame.targets
+    inside = aug.points_in_boxes(frame.points, t.pos, t.dims, t.yaw, t.valid)
+    inside = np.asarray(inside & frame.point_valid)
+    for k in range(3):
+        rows = np.flatnonzero(inside[k])
+        assert 100 < len(rows) < 256
+        keep = np.asarray(db.point_valid[k])
+        np.testing.assert_array_equal(keep, np.arange(256) < len(rows))
+        # Intensity is copied unchanged: it identifies the rows kept.
+        np.testing.assert_array_equal(db.points[k, keep, 3], np.asarray(frame.points)[rows, 3])
+
+
+def test_gt_sampling_pastes_nothing_when_every_target_slot_is_taken(database_256):
+    """With all M target slots valid a pasted object has no slot: the frame stays as it was
+    (it overwrote the first target; a mutation audit). With one slot free, the same draw
+    pastes an object there."""
+    db = database_256
+    m = CFG.data.max_objects
+    cfg = dataclasses.replace(OFF, gt_sampling=4)
+    paste = jax.jit(lambda f: aug.gt_sampling(jax.random.key(0), f, db, GRID, cfg))
+    xs = np.linspace(-1.0, 1.0, m)
+    for n in (m - 1, m):  # small boxes in a row near the sensor
+        labels = ObjectLabels(classes=[5] * n, dims=[[0.2, 0.2, 0.3]] * n,
+                              pos=[[x, -3.0, 0.15] for x in xs[:n]], yaw=[0.0] * n,
+                              occlusion=[0] * n)  # fmt: skip
+        targets = jax.tree.map(jnp.asarray, make_targets(labels, GRID, m))
+        frame = make_frame(1).replace(targets=targets)
+        out = paste(frame)
+        if n < m:
+            assert bool(out.targets.valid[m - 1]) and out.targets.masks[m - 1].any()
+            np.testing.assert_array_equal(out.targets.pos[: m - 1], targets.pos[: m - 1])
+        else:
+            jax.tree.map(np.testing.assert_array_equal, out.targets, frame.targets)
+            np.testing.assert_array_equal(out.point_valid, frame.point_valid)
+            np.testing.assert_array_equal(out.points, frame.points)

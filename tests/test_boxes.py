@@ -55,6 +55,10 @@ def test_axis_aligned_cells_give_their_rectangle():
         fit_box(np.zeros(GRID.shape, bool), GRID)
     with pytest.raises(ValueError, match=r"expected shape \(60, 80\)"):
         fit_box(mask[:5], GRID)
+    # A mask of another grid's width is refused too (only the row count was checked).
+    wide = np.pad(mask, ((0, 0), (0, 10)))  # 60 x 90, its cells where they were
+    with pytest.raises(ValueError, match=r"expected shape \(60, 80\) \(the grid\), got \(60, 90\)"):
+        fit_box(wide, GRID)
 
 
 def test_rasterised_boxes_are_recovered_and_equal_the_brute_force():
@@ -97,6 +101,25 @@ def test_long_box_heading_is_found_to_a_degree():
         assert abs(np.degrees(turn)) <= 1.0
         assert (length, width) == pytest.approx((2.0, 0.6), abs=2 * grid.cell_size)
         assert (x, y) == pytest.approx((0.3, -0.2), abs=grid.cell_size)
+
+
+def test_segment_boxes_search_the_same_headings_as_fit_box():
+    """``segment_boxes`` is ``fit_box`` of each segment: the same 1-degree heading search,
+    so the smallest padded area over all 90 headings (brute force). Half the headings passed
+    every test (the masks of to_labels below are axis-aligned; a mutation audit): long boxes
+    at random yaws on a fine grid, each its own segment id, show the difference."""
+    grid = GridConfig(x_range=(-2.0, 2.0), y_range=(-2.0, 2.0), cell_size=0.02)
+    rng = np.random.default_rng(0)
+    n = 16
+    boxes = np.stack([np.full(n, 0.1), np.full(n, -0.2), np.full(n, 2.0), np.full(n, 0.5),
+                      rng.uniform(0, np.pi, n)], 1).astype(np.float32)  # fmt: skip
+    _, masks = rasterize_boxes(boxes, np.ones(n, bool), grid)
+    for k, mask in enumerate(np.asarray(masks)):
+        segment = np.where(mask, k + 1, 0)
+        got = segment_boxes(segment, [k + 1], grid)[0]
+        np.testing.assert_allclose(got, fit_box(mask, grid), atol=1e-9, err_msg=str(boxes[k]))
+        area, _ = _brute_force(mask, grid)
+        assert got[2] * got[3] == pytest.approx(area, rel=1e-9), boxes[k]
 
 
 def test_to_labels_takes_the_fitted_or_the_regressed_box():

@@ -105,6 +105,11 @@ def test_bad_shapes_are_named():
         rasterize_boxes(jnp.zeros((3, 4)), jnp.ones(3, bool), GRID)
     with pytest.raises(ValueError, match="valid: expected shape"):
         rasterize_boxes(jnp.zeros((3, 5)), jnp.ones(2, bool), GRID)
+    # The right length is not enough: a column of flags or a scalar is not [N] either (a
+    # check of the length alone let [3, 1] through to an unnamed unpacking error).
+    for valid in (jnp.ones((3, 1), bool), jnp.ones((), bool)):
+        with pytest.raises(ValueError, match=r"valid: expected shape \(3,\), got \("):
+            rasterize_boxes(jnp.zeros((3, 5)), valid, GRID)
 
 
 def test_instance_ids_equal_a_numpy_rederivation_with_ties():
@@ -122,3 +127,41 @@ def test_instance_ids_equal_a_numpy_rederivation_with_ties():
             expected[r, c] = min(owners, key=lambda k: (area[k], k)) + 1
     np.testing.assert_array_equal(ids, expected)
     assert not (ids == 5).any() and (ids == 2).any()  # the copy of mask 1 never wins
+
+
+def test_no_boxes_give_an_empty_map():
+    """A frame without objects (N = 0): an all-background map of the grid's shape and no
+    masks, eagerly and jitted (the reduction over no masks has no identity)."""
+    h, w = GRID.shape
+    for run in (rasterize_boxes, rasterize):
+        ids, masks = run(jnp.zeros((0, 5)), jnp.zeros(0, bool), GRID)
+        assert ids.shape == (h, w) and ids.dtype == jnp.int32 and not np.asarray(ids).any()
+        assert masks.shape == (0, h, w)
+    ids = instance_ids_from_masks(np.zeros((0, h, w), bool), np.zeros(0, bool))
+    np.testing.assert_array_equal(ids, np.zeros((h, w), np.int32))
+
+
+def test_edges_through_inexact_cell_centres_count_as_inside():
+    """Boxes on a 0.1 m grid whose edges pass through cell centres (not exact in float32),
+    at each quarter-turn heading, cover exactly the cells from edge to edge: columns
+    c0..c1, rows r0..r1. Without the boundary slack most of them lost an edge row or column
+    (the 0.25 m grids above hold exact centres; a mutation audit)."""
+    grid = GridConfig(x_range=(-5.0, 5.0), y_range=(-4.0, 4.0), cell_size=0.1)  # H 80, W 100
+    h, w = grid.shape
+    rng = np.random.default_rng(2)
+    n = 300
+    c0, r0 = rng.integers(0, w, n), rng.integers(0, h, n)
+    c1, r1 = c0 + rng.integers(1, 25, n), r0 + rng.integers(1, 25, n)  # some past the edge
+    turn = rng.integers(0, 4, n)
+    v = grid.cell_size
+    span_x, span_y = (c1 - c0) * v, (r1 - r0) * v
+    boxes = np.stack([
+        grid.x_range[0] + (c0 + c1 + 1) / 2 * v, grid.y_range[0] + (r0 + r1 + 1) / 2 * v,
+        np.where(turn % 2, span_y, span_x), np.where(turn % 2, span_x, span_y),
+        turn * np.pi / 2,
+    ], 1).astype(np.float32)  # fmt: skip
+    _, masks = rasterize(jnp.asarray(boxes), jnp.ones(n, bool), grid)
+    rows, cols = np.arange(h)[:, None], np.arange(w)[None, :]
+    for k, mask in enumerate(np.asarray(masks)):
+        want = (rows >= r0[k]) & (rows <= r1[k]) & (cols >= c0[k]) & (cols <= c1[k])
+        np.testing.assert_array_equal(mask, want, err_msg=f"box {k}: {boxes[k]}")

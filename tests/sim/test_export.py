@@ -379,3 +379,21 @@ def test_show_takes_a_class_map_for_data_of_ones_own(exported, tmp_path, capsys)
     assert "unknown class 'Desk'" in capsys.readouterr().err
     assert main([*argv, "--set", 'data.class_map={"Desk": "Table"}']) == 0
     assert (tmp_path / "pics" / f"{fid}.png").exists()
+
+
+def test_an_odd_frame_count_cuts_the_last_scene(exported, tmp_path):
+    """--frames 3 with 2 frames a scene: scenes 0 and 1, the second cut after its first
+    frame. Exactly frames 000000-000002 are written, equal to those of the 20-frame export
+    (frames are a function of seed, scene and time), and the split lists hold those 3 (the
+    whole last scene was written and listed, 4 frames; a mutation audit)."""
+    root, _, _ = exported
+    out = tmp_path / "odd"
+    splits = export_mod.export(out, 3, SEED, CFG, progress=False)
+    ids = ["000000", "000001", "000002"]
+    assert splits == {"train": ids, "val": [], "test": []}
+    assert kitti.list_frames(out) == ids and kitti.read_split(out, "train") == ids
+    for sub in ("velodyne", "label_2", "mask_2"):
+        names = sorted(p.name for p in (out / sub).iterdir())
+        assert [n.split(".")[0] for n in names] == ids, sub
+        match, mismatch, errors = filecmp.cmpfiles(root / sub, out / sub, names, shallow=False)
+        assert not mismatch and not errors, (sub, mismatch, errors)
