@@ -86,9 +86,9 @@ def test_an_empty_ground_truth_folder_is_named(tmp_path, capsys):
             "tiny"]  # fmt: skip
     assert main(argv) == 1
     label_2 = tmp_path / "gt" / "label_2"
-    assert f"error: {label_2}: no label files (*.txt)" in capsys.readouterr().out
+    assert f"eval: error: {label_2}: no label files (*.txt)" in capsys.readouterr().err
     kitti.write_labels(label_2 / "a.txt", _labels([[0.0, 0.0]]), NAMES)
     assert main(argv) == 1
     assert f"error: {label_2}: 1 of 1 frames have no prediction label file" in (
-        capsys.readouterr().out
+        capsys.readouterr().err
     )

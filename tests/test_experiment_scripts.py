@@ -576,3 +576,23 @@ def test_ctrl_c_stops_an_experiment_script_with_one_line(tmp_path):
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
     assert err.strip().splitlines()[-1] == "demo.py: interrupted"
+
+
+@pytest.mark.parametrize(
+    ("script", "argv", "message"),
+    [
+        ("sweep", ["--batch-size", "0"], "config field 'train.batch_size': must be > 0, got 0"),
+        ("sweep", ["--steps", "10", "--warmup-steps", "100"], "train.warmup_steps"),
+        ("train", ["--batch-size", "0"], "config field 'train.batch_size': must be > 0, got 0"),
+        ("train", ["--set", "loss.nope=1"], "error: --set: 'loss.nope=1': loss has no field"),
+    ],
+)
+def test_config_values_the_config_refuses_are_one_line(script, argv, message, tmp_path, capsys):
+    """sweep.py's --batch-size 0 (or --steps below --warmup-steps) ended in a ConfigError
+    traceback, status 1; a bad --set exited 1 without the program's name."""
+    extra = ["--learning-rates", "1e-3"] if script == "sweep" else []
+    with pytest.raises(SystemExit) as exit_info:
+        _script(script).main(["--preset", "tiny", "--workdir", str(tmp_path), *extra, *argv])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and ": error: " in err

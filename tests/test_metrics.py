@@ -726,7 +726,7 @@ def test_eval_cli_matches_metric_functions(tmp_path, capsys):
     # A missing prediction file is an error naming it.
     (tmp_path / "pred/label_2/c.txt").unlink()
     assert main([*argv, "--preset", "tiny"]) == 1
-    printed = capsys.readouterr().out
+    printed = capsys.readouterr().err  # errors go to stderr, past `> metrics.txt`
     assert "1 of 3 frames have no prediction label file, e.g. " in printed
     assert "pred/label_2/c.txt (write an empty file" in printed
 
@@ -763,7 +763,7 @@ def test_eval_cli_says_which_objects_have_no_cell(tmp_path, capsys):
     # An empty split file names itself.
     (tmp_path / "gt/val.txt").write_text("\n")
     assert main([*argv, "--preset", "tiny", "--split", "val"]) == 1
-    assert f"{tmp_path / 'gt/val.txt'}: no frames" in capsys.readouterr().out
+    assert f"{tmp_path / 'gt/val.txt'}: no frames" in capsys.readouterr().err
 
 
 def test_evaluator_takes_targets_as_a_dict_like_set_loss():

@@ -236,7 +236,8 @@ def dataset_check(args: argparse.Namespace) -> int:
         config, source = dataset_config(root, args.preset, args.set)
         ds = KittiDataset(root, args.split, config)
     except (kitti.DatasetError, ConfigError, OSError) as e:
-        print(f"error: {e}")
+        # stderr: `dataset check ROOT > report.txt` must still show it
+        print(f"indoorbev dataset check: error: {e}", file=sys.stderr)
         return 1
     if len(ds) == 0:
         problems.append(f"{root}: no frames in split {args.split or 'all'}")

@@ -21,6 +21,8 @@ import functools
 import json
 import math
 import numbers
+import os
+import sys
 import typing
 from typing import Any
 
@@ -960,8 +962,10 @@ def add_config_arguments(parser, skip: tuple[str, ...] = ()) -> None:
 
 
 def config_from_args(args) -> Config:
-    """The config that ``add_config_arguments``' options give; exits naming a bad ``--set``.
-    ``--steps`` alone caps ``train.warmup_steps`` at the new total."""
+    """The config that ``add_config_arguments``' options give; a value the config refuses
+    (``--batch-size 0``, ``--steps`` below ``--warmup-steps``, a bad ``--set``) exits with
+    one line and status 2, as argparse's errors do. ``--steps`` alone caps
+    ``train.warmup_steps`` at the new total."""
     config = Config.preset(args.preset)
     train = {
         field: getattr(args, flag[2:].replace("-", "_"), None) for flag, field, *_ in _TRAIN_FLAGS
@@ -973,8 +977,14 @@ def config_from_args(args) -> Config:
         train["bfloat16"] = True
     if "total_steps" in train and "warmup_steps" not in train:
         train["warmup_steps"] = min(config.train.warmup_steps, train["total_steps"])
-    config = dataclasses.replace(config, train=dataclasses.replace(config.train, **train))
+    prog = os.path.basename(sys.argv[0]) or "indoorbev"
+    try:
+        config = dataclasses.replace(config, train=dataclasses.replace(config.train, **train))
+    except ConfigError as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
     try:
         return with_overrides(config, args.set)
     except ConfigError as e:
-        raise SystemExit(f"--set: {e}") from None
+        print(f"{prog}: error: --set: {e}", file=sys.stderr)
+        raise SystemExit(2) from None

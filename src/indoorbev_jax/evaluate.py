@@ -17,6 +17,7 @@ import argparse
 import functools
 import json
 import math
+import sys
 from pathlib import Path
 
 import jax
@@ -229,7 +230,8 @@ def eval_command(args: argparse.Namespace) -> int:
         notes: list[str] = []
         evaluator = folder_evaluator(args.gt, args.pred, config, args.split, notes)
     except (kitti.DatasetError, ConfigError, OSError) as e:
-        print(f"error: {e}")
+        # stderr: `indoorbev eval GT PRED > metrics.txt` must still show it
+        print(f"indoorbev eval: error: {e}", file=sys.stderr)
         return 1
     text, payload = report(evaluator, config.data.class_names)
     print(f"ground truth {args.gt}, predictions {args.pred} ({source})")

@@ -183,8 +183,9 @@ def test_dataset_check_names_lost_files(tmp_path, capsys):
         cli_main(["dataset", "check", str(tmp_path), "--split", "train", "--preset", "tiny"]) == 1
     )
     assert (
-        "1 file(s) of its frames are missing, e.g. ['label_2/000003.txt']"
-        in capsys.readouterr().out
+        "dataset check: error: "  # on stderr
+        in (err := capsys.readouterr().err)
+        and "e.g. ['label_2/000003.txt']" in err
     )
 
 
@@ -247,20 +248,20 @@ def test_eval_names_missing_ground_truth_duplicates_and_bad_json_paths(tmp_path,
     # A split naming a frame whose ground truth is missing: named, no traceback.
     kitti.write_split(tmp_path / "gt", "odd", ["000000", "777777"])
     assert cli_main([*argv, "--split", "odd"]) == 1
-    out = capsys.readouterr().out
+    out = capsys.readouterr().err
     assert "odd.txt: 1 of 2 frames have no ground-truth label file, e.g. " in out
     assert "777777.txt" in out
     # The same id twice would count its frame twice.
     (tmp_path / "gt" / "dup.txt").write_text("000000\n000001\n\n000000\n")
     assert cli_main([*argv, "--split", "dup"]) == 1
-    assert "dup.txt:4: frame id '000000' again (first on line 1)" in capsys.readouterr().out
+    assert "dup.txt:4: frame id '000000' again (first on line 1)" in capsys.readouterr().err
     # An unusable --json path fails before the evaluation, not after it.
     (tmp_path / "file").write_text("")
     assert cli_main([*argv, "--split", "train", "--json", str(tmp_path / "file" / "x")]) == 1
-    out = capsys.readouterr().out
-    assert out.startswith("error:") and "frames:" not in out
+    captured = capsys.readouterr()
+    assert captured.err.startswith("indoorbev eval: error:") and "frames:" not in captured.out
     assert cli_main([*argv, "--split", "train", "--json", str(tmp_path)]) == 1
-    assert "is a folder, expected a file name" in capsys.readouterr().out
+    assert "is a folder, expected a file name" in capsys.readouterr().err
     assert cli_main([*argv, "--split", "train", "--json", str(tmp_path / "m.json")]) == 0
     assert "ap" in json.loads((tmp_path / "m.json").read_text())
 
@@ -277,4 +278,4 @@ def test_eval_refuses_scored_ground_truth_and_notes_extra_predictions(tmp_path, 
     assert "note: 1 prediction files have no ground truth" in capsys.readouterr().out
     (pred / "label_2" / "000009.txt").unlink()
     assert cli_main([*argv, "--gt", str(pred), "--pred", str(tmp_path / "gt")]) == 1
-    assert "000000.txt: ground truth with a score column" in capsys.readouterr().out
+    assert "000000.txt: ground truth with a score column" in capsys.readouterr().err
