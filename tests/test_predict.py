@@ -591,6 +591,13 @@ def test_predict_resumes_and_refuses_another_runs_outputs(model_file, tmp_path, 
     # Another run's settings, or label files of unknown origin, are not mixed in.
     with pytest.raises(ValueError, match=r"another run \(views: \['identity'\] -> \['mirror_x'\]"):
         P.predict(model_file, data, out, views=("mirror_x",), verbose=False)
+    # A run stopped before its first frame left only predict.json: a run with other
+    # settings takes the folder (it was refused, asking for --overwrite).
+    early = tmp_path / "early"
+    early.mkdir()
+    (early / "predict.json").write_text((out / "predict.json").read_text())
+    P.predict(model_file, data, early, views=("mirror_x",), pictures=False, verbose=False)
+    assert json.loads((early / "predict.json").read_text())["views"] == ["mirror_x"]
     stale = tmp_path / "stale"
     kitti.write_labels(stale / "label_2" / "009999.txt", kitti.read_labels(
         out / "label_2" / "000000.txt", CFG.data), CFG.data.class_names)  # fmt: skip

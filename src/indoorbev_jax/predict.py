@@ -510,7 +510,8 @@ def model_fingerprint(config: Config, params: Any) -> str:
 
 def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
     """Checks that ``out`` holds nothing but this run's outputs (then they are resumed), or
-    clears the earlier outputs when ``overwrite``; writes ``predict.json``."""
+    clears the earlier outputs when ``overwrite``; writes ``predict.json``. A
+    ``predict.json`` without outputs (a run stopped before its first frame) is replaced."""
     manifest = out / "predict.json"
     ours = [p for d, ext in OUTPUT_DIRS.items() for p in (out / d).glob(f"*{ext}")]
     if manifest.exists():
@@ -522,7 +523,9 @@ def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
             saved.setdefault("boxes", "head")  # runs before the entry wrote the head's boxes
         if saved == run:
             return
-        if not overwrite:
+        # A run stopped before its first frame (Ctrl-C while compiling) left only its
+        # predict.json: nothing to mix, so another run's settings may take the folder.
+        if not overwrite and ours:
             diff = sorted(k for k in run.keys() | saved.keys() if run.get(k) != saved.get(k))
             shown = ", ".join(f"{k}: {saved.get(k)!r} -> {run.get(k)!r}" for k in diff)
             raise ValueError(
