@@ -596,3 +596,19 @@ def test_config_values_the_config_refuses_are_one_line(script, argv, message, tm
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err and ": error: " in err
+
+
+def test_a_backend_this_machine_lacks_is_one_line():
+    """JAX_PLATFORMS=cuda on a machine without a GPU ended every command in a traceback (a
+    bare AssertionError); the console and experiment scripts now say it in one line."""
+    import os
+    import subprocess
+    import sys
+
+    code = "from indoorbev_jax.cli import exit_with; exit_with(lambda: 0, 'probe')"
+    env = {**os.environ, "JAX_PLATFORMS": "nosuch"}
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=env, timeout=120)  # fmt: skip
+    assert run.returncode == 2, run.stderr
+    assert run.stderr.startswith("probe: error: JAX_PLATFORMS=nosuch: no such backend here")
+    assert len(run.stderr.strip().splitlines()) == 1

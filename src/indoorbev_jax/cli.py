@@ -503,6 +503,26 @@ def _remember_sigint(signum, frame):
     raise KeyboardInterrupt
 
 
+def _check_jax_platforms(prog: str) -> None:
+    """One line, status 2, when ``JAX_PLATFORMS`` names a backend this machine lacks: JAX
+    ends in a traceback (for ``cuda`` without its plugin, a bare AssertionError)."""
+    wanted = os.environ.get("JAX_PLATFORMS", "")
+    if wanted in ("", "cpu"):
+        return
+    import jax
+
+    try:
+        jax.devices()
+    except (RuntimeError, AssertionError) as e:
+        why = f" ({str(e).split(' (set JAX_PLATFORMS')[0]})" if str(e) else ""
+        print(
+            f"{prog}: error: JAX_PLATFORMS={wanted}: no such backend here{why}; unset it or "
+            "set JAX_PLATFORMS=cpu (a GPU needs a driver and the jax[cuda12] wheel)",
+            file=sys.stderr,
+        )
+        sys.exit(2)
+
+
 def exit_with(main_fn, prog: str):
     """Runs a console command's ``main`` and exits with its status.
 
@@ -513,6 +533,7 @@ def exit_with(main_fn, prog: str):
     """
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not if ignored
         signal.signal(signal.SIGINT, _remember_sigint)
+    _check_jax_platforms(prog)
     try:
         status = main_fn()
     except KeyboardInterrupt:
