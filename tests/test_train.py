@@ -525,6 +525,28 @@ def test_refused_start_leaves_no_config_json(data, tmp_path, quick_start):
     assert Config.from_dict(json.loads((workdir / "config.json").read_text())) == CFG
 
 
+def test_a_workdir_in_use_by_another_run_is_refused(data, tmp_path, quick_start):
+    """Two runs in one workdir both ran to the end, writing one metrics log (steps 5..20
+    twice) and one set of checkpoints; the second is now refused, naming the first."""
+    import fcntl
+
+    from indoorbev_jax.sweep import run_sweep
+
+    workdir = tmp_path / "run"
+    workdir.mkdir()
+    with open(workdir / ".lock", "w") as other:  # the first run, as its lock shows it
+        fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        other.write("pid 4242\n")
+        other.flush()
+        with pytest.raises(ValueError, match=r"run: in use by another run \(pid 4242\)"):
+            T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
+        with pytest.raises(ValueError, match=r"run: in use by another run \(pid 4242\)"):
+            run_sweep(CFG, workdir, stack_hypers(CFG, [1e-3], {}), str(data), progress=False)
+    assert not (workdir / "config.json").exists()
+    with pytest.raises(_Stop):  # once the first run has ended, it starts
+        T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
+
+
 def test_resume_refuses_another_data_source(data, tmp_path, quick_start, monkeypatch):
     monkeypatch.setattr(T, "SimSource", _FakeSim)
     workdir = tmp_path / "run"

@@ -30,6 +30,7 @@ from indoorbev_jax.train import (
     check_resume,
     check_run_kind,
     gt_database,
+    holds_workdir,
     init_state,
     jit_train_step,
     make_sources,
@@ -100,6 +101,7 @@ def hypers_to_json(hypers: Hyper) -> dict:
     }
 
 
+@holds_workdir
 def run_sweep(
     config: Config,
     workdir,

@@ -18,6 +18,8 @@ once (``experiments/sweep.py``).
 from __future__ import annotations
 
 import collections
+import fcntl
+import functools
 import hashlib
 import json
 import logging
@@ -923,6 +925,35 @@ def check_resume(
             )
 
 
+def holds_workdir(run_fn):
+    """Runs ``run_fn(config, workdir, ...)`` holding an exclusive lock on ``workdir/.lock``
+    (``flock``: released when the run ends or its process dies). Two runs started in one
+    workdir both ran to the end, writing one metrics log and one set of checkpoints."""
+
+    @functools.wraps(run_fn)
+    def run(config, workdir, *args, **kwargs):
+        workdir = Path(workdir)
+        workdir.mkdir(parents=True, exist_ok=True)
+        with open(workdir / ".lock", "a+") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                lock.seek(0)
+                holder = lock.read().strip() or "another process"
+                raise ValueError(
+                    f"{workdir}: in use by another run ({holder}); wait for it to end, or "
+                    "use another workdir"
+                ) from None
+            lock.seek(0)
+            lock.truncate()
+            lock.write(f"pid {os.getpid()}\n")
+            lock.flush()
+            return run_fn(config, workdir, *args, **kwargs)
+
+    return run
+
+
+@holds_workdir
 def train_and_evaluate(
     config: Config,
     workdir: str | os.PathLike,
