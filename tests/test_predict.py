@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -598,6 +599,14 @@ def test_predict_resumes_and_refuses_another_runs_outputs(model_file, tmp_path, 
     (early / "predict.json").write_text((out / "predict.json").read_text())
     P.predict(model_file, data, early, views=("mirror_x",), pictures=False, verbose=False)
     assert json.loads((early / "predict.json").read_text())["views"] == ["mirror_x"]
+    # ... but another tool's predict.json, or an unreadable one, is not replaced unasked.
+    for text in ('{"detector": "other"}', "not json"):
+        (early / "predict.json").write_text(text)
+        for d in ("label_2", "mask_2"):
+            shutil.rmtree(early / d, ignore_errors=True)
+        with pytest.raises(ValueError, match="holds the predictions of another run"):
+            P.predict(model_file, data, early, pictures=False, verbose=False)
+        assert (early / "predict.json").read_text() == text
     stale = tmp_path / "stale"
     kitti.write_labels(stale / "label_2" / "009999.txt", kitti.read_labels(
         out / "label_2" / "000000.txt", CFG.data), CFG.data.class_names)  # fmt: skip

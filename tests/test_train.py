@@ -525,7 +525,7 @@ def test_refused_start_leaves_no_config_json(data, tmp_path, quick_start):
     assert Config.from_dict(json.loads((workdir / "config.json").read_text())) == CFG
 
 
-def test_a_workdir_in_use_by_another_run_is_refused(data, tmp_path, quick_start):
+def test_a_workdir_in_use_by_another_run_is_refused(data, tmp_path, quick_start, monkeypatch):
     """Two runs in one workdir both ran to the end, writing one metrics log (steps 5..20
     twice) and one set of checkpoints; the second is now refused, naming the first."""
     import fcntl
@@ -542,7 +542,20 @@ def test_a_workdir_in_use_by_another_run_is_refused(data, tmp_path, quick_start)
             T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
         with pytest.raises(ValueError, match=r"run: in use by another run \(pid 4242\)"):
             run_sweep(CFG, workdir, stack_hypers(CFG, [1e-3], {}), str(data), progress=False)
-    assert not (workdir / "config.json").exists()
+        assert not (workdir / "config.json").exists()
+        # The other hosts of a multi-host run share the workdir: only process 0 locks it.
+        with monkeypatch.context() as m, pytest.raises(_Stop):
+            m.setattr(jax, "process_index", lambda: 1)
+            T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
+    # A filesystem without flock (Lustre without -o flock): a warning, and the run starts.
+    import errno
+
+    def no_flock(*_):
+        raise OSError(errno.ENOSYS, "Function not implemented")
+
+    with monkeypatch.context() as m, pytest.raises(_Stop):
+        m.setattr(fcntl, "flock", no_flock)
+        T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
     with pytest.raises(_Stop):  # once the first run has ended, it starts
         T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
 

@@ -525,7 +525,9 @@ def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
             return
         # A run stopped before its first frame (Ctrl-C while compiling) left only its
         # predict.json: nothing to mix, so another run's settings may take the folder.
-        if not overwrite and ours:
+        # Another tool's (or an unreadable) predict.json is never replaced unasked.
+        ours_only = isinstance(saved, dict) and saved.get("format") == PREDICT_FORMAT
+        if not overwrite and (ours or not ours_only):
             diff = sorted(k for k in run.keys() | saved.keys() if run.get(k) != saved.get(k))
             shown = ", ".join(f"{k}: {saved.get(k)!r} -> {run.get(k)!r}" for k in diff)
             raise ValueError(

@@ -481,6 +481,8 @@ def check_partial(bag: Path) -> Path:
     does not leave (those are deleted before the write)."""
     partial = partial_path(bag)
     ours = {bag.name, f"{bag.name}.old"}
+    if partial.exists() and not partial.is_dir():
+        raise FileExistsError(f"{partial}: a file where the bag's temporary folder goes; move it")
     if partial.is_dir() and any(p.name not in ours for p in partial.iterdir()):
         raise FileExistsError(
             f"{partial}: holds files that an interrupted write of {bag} does not leave; "

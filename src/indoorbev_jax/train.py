@@ -18,6 +18,7 @@ once (``experiments/sweep.py``).
 from __future__ import annotations
 
 import collections
+import errno
 import fcntl
 import functools
 import hashlib
@@ -928,12 +929,16 @@ def check_resume(
 def holds_workdir(run_fn):
     """Runs ``run_fn(config, workdir, ...)`` holding an exclusive lock on ``workdir/.lock``
     (``flock``: released when the run ends or its process dies). Two runs started in one
-    workdir both ran to the end, writing one metrics log and one set of checkpoints."""
+    workdir both ran to the end, writing one metrics log and one set of checkpoints. Only
+    process 0 of a multi-host run takes it (its hosts share the workdir); a filesystem
+    without ``flock`` gets a warning and no lock."""
 
     @functools.wraps(run_fn)
     def run(config, workdir, *args, **kwargs):
         workdir = Path(workdir)
         workdir.mkdir(parents=True, exist_ok=True)
+        if jax.process_index() != 0:  # the hosts of one multi-host run share the workdir
+            return run_fn(config, workdir, *args, **kwargs)
         with open(workdir / ".lock", "a+") as lock:
             try:
                 fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -944,6 +949,11 @@ def holds_workdir(run_fn):
                     f"{workdir}: in use by another run ({holder}); wait for it to end, or "
                     "use another workdir"
                 ) from None
+            except OSError as e:  # a filesystem without flock (Lustre without -o flock)
+                if e.errno not in (errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOLCK):
+                    raise
+                log.warning("%s: cannot lock the workdir (%s); running without", workdir, e)
+                return run_fn(config, workdir, *args, **kwargs)
             lock.seek(0)
             lock.truncate()
             lock.write(f"pid {os.getpid()}\n")

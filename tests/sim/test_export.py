@@ -276,6 +276,9 @@ def test_bad_options_fail_before_any_frame(cache, tmp_path):
     (tmp_path / "b.partial" / "notes.txt").write_text("")
     with pytest.raises(export_mod.ExportError, match=r"b\.partial: holds files that an inter"):
         export_mod.export(out, 4, SEED, CFG, rosbag=tmp_path / "b", progress=False)
+    (tmp_path / "f.partial").write_text("")  # a file there: write_bag failed at the end
+    with pytest.raises(export_mod.ExportError, match=r"f\.partial: a file where the bag's"):
+        export_mod.export(out, 4, SEED, CFG, rosbag=tmp_path / "f", progress=False)
     # numpy integers are whole numbers (they were refused as "a whole number ... got 2").
     assert check_whole("frames", np.int64(2), 1) == 2 and check_seed("seed", np.uint32(7)) == 7
     for bad in (True, np.bool_(True), 2.0):
