@@ -161,8 +161,8 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
         cols, spread4, spread = misread
         raise DatasetError(
             f"{path}: looks like {cols} float32 values per point, not 4 (x, y, z, intensity): "
-            f"consecutive points lie {spread4:.2f} m apart (median) read as 4 columns and "
-            f"{spread:.2f} m read as {cols}; write 4 columns "
+            f"nearby points in the file lie {spread4:.2f} m apart (median) read as 4 columns "
+            f"and {spread:.2f} m read as {cols}; write 4 columns "
             "(np.c_[xyz, intensity].astype(np.float32).tofile(path))"
         )
     return words.reshape(-1, 4)
@@ -170,22 +170,32 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
 
 # Point gaps compared per stride. Lidars interleave emitters (the MID-360 fires 4 at once),
 # so a point's neighbour in firing order may be 2 or 4 points on: in a 40 x 30 m hall a
-# 5-column MID-360 file read as 4 columns was only 1.35x less coherent at gap 1. Stride 3
-# skips gap 4 (where a 4-column file read as 3 realigns); stride 4 skips gaps 3 and 5.
-_STEP_GAPS = {3: (1, 2, 3), 4: (1, 2, 4), 5: (1, 2, 4)}
+# 5-column MID-360 file read as 4 columns was only 1.35x less coherent at gap 1. No stride
+# may use a gap at which another stride's file realigns: 3 skips 4 (a 4-column file read
+# as 3), 4 skips 3 and 5. Stride 5's gap 4 is also where a 4-column file realigns (20
+# words), so a 5-emitter lidar's genuine file looked like 5 columns; stride 5 uses it only
+# when the 5th column holds whole numbers (a ring, line or tag id), which a 4-column file
+# read as 5 (x, y, z and intensity in turn) does not.
+_STEP_GAPS = {3: (1, 2, 3), 4: (1, 2, 4), 5: (1, 2)}
+
+
+def _whole_fifth_column(words: np.ndarray) -> bool:
+    fifth = words[: words.size // 5 * 5].reshape(-1, 5)[:, 4]
+    fifth = fifth[np.isfinite(fifth)]
+    return len(fifth) >= 64 and float(np.mean(fifth == np.round(fifth))) >= 0.99
 
 
 def _median_step(words: np.ndarray, cols: int) -> float:
-    """The least, over the gaps of ``_STEP_GAPS``, median distance between finite points
-    that many apart in ``words`` read as ``cols`` columns (x, y, z first)."""
+    """The least, over the gaps of ``_STEP_GAPS`` (and gap 4 for a 5th column of whole
+    numbers), median distance between finite points that many apart in ``words`` read as
+    ``cols`` columns (x, y, z first)."""
     n = words.size // cols
     xyz = words[: n * cols].reshape(n, cols)[:, :3].astype(np.float64)
     xyz = xyz[np.isfinite(xyz).all(axis=1) & (np.abs(xyz) < 1e6).all(axis=1)]
     if len(xyz) < 64:
         return np.nan
-    return min(
-        float(np.median(np.linalg.norm(xyz[gap:] - xyz[:-gap], axis=1))) for gap in _STEP_GAPS[cols]
-    )
+    gaps = _STEP_GAPS[cols] + ((4,) if cols == 5 and _whole_fifth_column(words) else ())
+    return min(float(np.median(np.linalg.norm(xyz[g:] - xyz[:-g], axis=1))) for g in gaps)
 
 
 def _other_column_count(words: np.ndarray) -> tuple[int, float, float] | None:
