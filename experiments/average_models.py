@@ -18,17 +18,27 @@ import math
 
 import jax
 
-from indoorbev_jax.cli import add_views_argument, join_negative_values, rpy_argument
+from indoorbev_jax.cli import HelpFormatter, add_views_argument, join_negative_values, rpy_argument
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.predict import average_models, export_model, with_thresholds
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     p.add_argument("models", nargs="+", help="model files or run directories (2 or more)")
     p.add_argument("--out", required=True, help="model file to write (.msgpack)")
-    p.add_argument("--score-threshold", type=float, default=None, help="inference.score_threshold")
-    p.add_argument("--mask-threshold", type=float, default=None, help="inference.mask_threshold")
+    p.add_argument(
+        "--score-threshold",
+        type=float,
+        default=None,
+        help="inference.score_threshold stored in the file (default: the first model's)",
+    )
+    p.add_argument(
+        "--mask-threshold",
+        type=float,
+        default=None,
+        help="inference.mask_threshold stored in the file (default: the first model's)",
+    )
     add_views_argument(p, "the first model's")
     p.add_argument(
         "--sensor-rpy",

@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from indoorbev_jax.cli import HelpFormatter
 from indoorbev_jax.rosbag import (
     LIVOX_CUSTOM,
     header,
@@ -48,11 +49,17 @@ def livox_scan(ts, n: int, seed: int) -> bytes:
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     p.add_argument("--points", type=int, nargs="+", default=[20_000],
-                   help="points per scan (a MID-360 gives about 20,000 at 10 Hz)")  # fmt: skip
+                   help="points per scan, one row each (a MID-360 gives about 20,000 at 10 Hz; "
+                   "default: 20000)")  # fmt: skip
     p.add_argument("--reps", type=int, default=5, help="timed calls per decoder and round")
-    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument(
+        "--rounds",
+        type=int,
+        default=3,
+        help="rounds of the two decoders, interleaved; checked equal each round",
+    )
     args = p.parse_args(argv)
     if any(n < 0 for n in args.points) or args.reps < 1 or args.rounds < 1:
         p.error("--points must be >= 0, --reps and --rounds >= 1")

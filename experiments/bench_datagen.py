@@ -28,15 +28,29 @@ import jax
 import numpy as np
 from indoorbev_sim import generate, lidar
 
-from indoorbev_jax.cli import positive_int
+from indoorbev_jax.cli import HelpFormatter, positive_int
 from indoorbev_jax.config import Config
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--preset", default="small", choices=("paper", "small", "tiny"))
-    parser.add_argument("--batch", type=positive_int, default=8)
-    parser.add_argument("--repeats", type=positive_int, default=5)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter
+    )
+    parser.add_argument(
+        "--preset",
+        default="small",
+        choices=("paper", "small", "tiny"),
+        help="config preset: grid, rays and scene contents",
+    )
+    parser.add_argument(
+        "--batch", type=positive_int, default=8, help="scenes generated per call of ours (B)"
+    )
+    parser.add_argument(
+        "--repeats",
+        type=positive_int,
+        default=5,
+        help="interleaved timed runs of each row (their median)",
+    )
     parser.add_argument("--ref-frames", type=positive_int, default=4,
                         help="reference frames per repeat (at most --batch)")  # fmt: skip
     args = parser.parse_args(argv)

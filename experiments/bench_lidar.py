@@ -40,7 +40,7 @@ import numpy as np
 from indoorbev_sim import lidar, patterns
 from mujoco import mjx
 
-from indoorbev_jax.cli import nonnegative_int, positive_int
+from indoorbev_jax.cli import HelpFormatter, nonnegative_int, positive_int
 
 CUTOFF = 30.0
 SENSOR = np.array([0.0, 0.0, 0.5])
@@ -239,9 +239,20 @@ def scenes_run(m, d, mx, dx, nscene, args):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeats", type=positive_int, default=7)
-    ap.add_argument("--sets", default="mid360 frame,grid 360x64,random 1M")
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter
+    )
+    ap.add_argument(
+        "--repeats",
+        type=positive_int,
+        default=7,
+        help="interleaved timed runs per backend (their median)",
+    )
+    ap.add_argument(
+        "--sets",
+        default="mid360 frame,grid 360x64,random 1M",
+        help="comma list of the ray sets to time",
+    )
     ap.add_argument(
         "--calls",
         type=positive_int,

@@ -31,6 +31,7 @@ import numpy as np
 import optax
 from scipy.optimize import linear_sum_assignment
 
+from indoorbev_jax.cli import HelpFormatter
 from indoorbev_jax.config import NUM_CLASSES, LossConfig
 from indoorbev_jax.losses import cost_matrix, set_loss
 from indoorbev_jax.matching import match
@@ -167,13 +168,22 @@ def bench_memory(layers: int, batch: int, q: int, m: int, grid: int, points: int
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter
+    )
     parser.add_argument("--batch", type=int, default=1, help="frames for the memory bench")
     parser.add_argument("--grid", type=int, default=500, help="H = W of the memory bench")
     parser.add_argument("--points", type=int, default=112 * 112, help="sampled mask cells")
     parser.add_argument("--reps", type=int, default=3, help="timed runs of the memory bench")
-    parser.add_argument("--match-reps", type=int, default=50)
-    parser.add_argument("--skip-memory", action="store_true")
+    parser.add_argument(
+        "--match-reps",
+        type=int,
+        default=50,
+        help="timed runs of each matcher, interleaved (their median)",
+    )
+    parser.add_argument(
+        "--skip-memory", action="store_true", help="time the matching only, not the memory bench"
+    )
     args = parser.parse_args(argv)
     if args.grid < 64:  # footprints reach 60 cells
         parser.error(f"--grid must be at least 64 cells, got {args.grid}")

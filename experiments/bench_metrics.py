@@ -24,6 +24,7 @@ import time
 
 import numpy as np
 
+from indoorbev_jax.cli import HelpFormatter
 from indoorbev_jax.config import NUM_CLASSES, InferenceConfig
 from indoorbev_jax.metrics import Evaluator, mask_ap, panoptic_quality
 from indoorbev_jax.types import Predictions, Targets
@@ -136,16 +137,39 @@ def bench_evaluator(rng, frames, h, w, q, m, batch):
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=1000)
-    parser.add_argument("--distinct", type=int, default=20)
-    parser.add_argument("--size", type=int, default=500)
-    parser.add_argument("--queries", type=int, default=30)
-    parser.add_argument("--objects", type=int, default=15)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--eval-frames", type=int, default=200)
-    parser.add_argument("--eval-batch", type=int, default=4)
-    parser.add_argument("--skip-pycocotools", action="store_true")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter
+    )
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=1000,
+        help="frames scored by mask_ap, pycocotools and panoptic_quality",
+    )
+    parser.add_argument(
+        "--distinct", type=int, default=20, help="random frames made, cycled to --frames"
+    )
+    parser.add_argument("--size", type=int, default=500, help="grid cells a side (H = W)")
+    parser.add_argument("--queries", type=int, default=30, help="detections per frame")
+    parser.add_argument("--objects", type=int, default=15, help="ground-truth objects per frame")
+    parser.add_argument(
+        "--repeats",
+        type=int,
+        default=3,
+        help="interleaved timed runs of the AP and PQ rows (their median)",
+    )
+    parser.add_argument(
+        "--eval-frames",
+        type=int,
+        default=200,
+        help="frames for the Evaluator row (at least --eval-batch)",
+    )
+    parser.add_argument("--eval-batch", type=int, default=4, help="frames per Evaluator.add call")
+    parser.add_argument(
+        "--skip-pycocotools",
+        action="store_true",
+        help="time ours only (pycocotools not installed, say)",
+    )
     args = parser.parse_args(argv)
     if args.size < 64:  # footprints and blobs reach 60 cells
         parser.error(f"--size must be at least 64 cells, got {args.size}")

@@ -50,7 +50,7 @@ import numpy as np
 import optax
 
 from indoorbev_jax import host_memory
-from indoorbev_jax.cli import nonnegative_int, positive_int
+from indoorbev_jax.cli import HelpFormatter, nonnegative_int, positive_int
 from indoorbev_jax.config import Config, ConfigError, with_overrides
 from indoorbev_jax.models import IndoorBEV
 from indoorbev_jax.xla_flags import train_compiler_options
@@ -203,18 +203,45 @@ def _peak_rss_gib() -> float:
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--preset", default="small", choices=["tiny", "small", "paper"])
-    ap.add_argument("--mode", default="train", choices=["fwd", "train"])
-    ap.add_argument("--batch", type=positive_int, default=4)
-    ap.add_argument("--reps", type=nonnegative_int, default=5, help="0: compile and memory only")
-    ap.add_argument("--warmup", type=nonnegative_int, default=1)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter
+    )
+    ap.add_argument(
+        "--preset",
+        default="small",
+        choices=["tiny", "small", "paper"],
+        help="config preset of both sides (the peer has no tiny)",
+    )
+    ap.add_argument(
+        "--mode",
+        default="train",
+        choices=["fwd", "train"],
+        help="fwd: the forward alone; train: forward, backward and AdamW step",
+    )
+    ap.add_argument("--batch", type=positive_int, default=4, help="frames per call")
+    ap.add_argument(
+        "--reps",
+        type=nonnegative_int,
+        default=5,
+        help="timed runs of each side, interleaved (their median); 0: compile and memory only",
+    )
+    ap.add_argument(
+        "--warmup",
+        type=nonnegative_int,
+        default=1,
+        help="untimed runs of each side before the timed ones",
+    )
     ap.add_argument("--set", action="append", default=[], help="config override a.b=v")
     ap.add_argument(
         "--bf16", action="store_true", help="bfloat16 computation (ours; the peer's by autocast)"
     )
     ap.add_argument("--peer", default="convT2", help="comma list of peer up_modes, or none")
-    ap.add_argument("--only", default="both", choices=["both", "jax", "torch"])
+    ap.add_argument(
+        "--only",
+        default="both",
+        choices=["both", "jax", "torch"],
+        help="run one side alone (jax: ours, torch: the peer), so the peak RSS is its own",
+    )
     ap.add_argument(
         "--vs",
         action="append",

@@ -41,6 +41,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from indoorbev_jax.cli import HelpFormatter
 from indoorbev_jax.config import Config, InferenceConfig
 from indoorbev_jax.predict import export_model
 from indoorbev_jax.ros2 import runtime
@@ -145,14 +146,40 @@ def _phase(name, model, node, pub, received, clouds, rate, count) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--preset", default="small", choices=("tiny", "small", "paper"))
-    parser.add_argument("--latency-rate", type=float, default=1.0)
-    parser.add_argument("--latency-frames", type=int, default=20)
-    parser.add_argument("--rate", type=float, default=10.0, help="sensor rate (Hz)")
-    parser.add_argument("--max-rate", type=float, default=50.0, help="saturating rate (Hz)")
-    parser.add_argument("--seconds", type=float, default=20.0, help="per throughput phase")
-    parser.add_argument("--seed", type=int, default=0)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter
+    )
+    parser.add_argument(
+        "--preset",
+        default="small",
+        choices=("tiny", "small", "paper"),
+        help="config preset of the clouds and of the untrained model",
+    )
+    parser.add_argument(
+        "--latency-rate",
+        type=float,
+        default=1.0,
+        help="publish rate (Hz) of the latency phase, slow enough not to queue",
+    )
+    parser.add_argument(
+        "--latency-frames", type=int, default=20, help="clouds published in the latency phase"
+    )
+    parser.add_argument(
+        "--rate", type=float, default=10.0, help="publish rate (Hz) of the sensor-rate phase"
+    )
+    parser.add_argument(
+        "--max-rate",
+        type=float,
+        default=50.0,
+        help="publish rate (Hz) of the saturated phase, above what the node can answer",
+    )
+    parser.add_argument(
+        "--seconds",
+        type=float,
+        default=20.0,
+        help="seconds of publishing per throughput phase (sensor rate, saturated)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated scenes")
     args = parser.parse_args(argv)
     counts = {
         "--latency-frames": args.latency_frames,

@@ -17,7 +17,7 @@ import time
 
 import jax
 
-from indoorbev_jax.cli import nonnegative_int, positive_int
+from indoorbev_jax.cli import HelpFormatter, nonnegative_int, positive_int
 from indoorbev_jax.config import Config
 from indoorbev_jax.sweep import init_sweep, make_sweep_step, stack_hypers
 from indoorbev_jax.train import Hyper, init_state, jit_train_step, make_train_step
@@ -75,11 +75,26 @@ def bench_preset(name: str, steps: int, batch_size: int | None, sweep_k: int) ->
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--presets", nargs="+", default=["tiny", "small"],
-                   choices=("paper", "small", "tiny"))  # fmt: skip
-    p.add_argument("--steps", type=positive_int, default=10)
-    p.add_argument("--batch-size", type=positive_int, default=None)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
+    p.add_argument(
+        "--presets",
+        nargs="+",
+        default=["tiny", "small"],
+        choices=("paper", "small", "tiny"),
+        help="config presets to time, in turn (default: tiny small)",
+    )
+    p.add_argument(
+        "--steps",
+        type=positive_int,
+        default=10,
+        help="timed steps per preset (the median), and rounds of the sweep rows",
+    )
+    p.add_argument(
+        "--batch-size",
+        type=positive_int,
+        default=None,
+        help="frames per step (default: each preset's train.batch_size)",
+    )
     p.add_argument("--sweep-k", type=nonnegative_int, default=4,
                    help="K vmapped models against K sequential (0 or 1: none)")  # fmt: skip
     args = p.parse_args(argv)

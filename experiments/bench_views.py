@@ -23,7 +23,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from indoorbev_jax.cli import positive_int
+from indoorbev_jax.cli import HelpFormatter, positive_int
 from indoorbev_jax.config import VIEWS, InferenceConfig
 from indoorbev_jax.inference import (
     apply_views,
@@ -49,11 +49,16 @@ def _median_ms(fn, *args, reps: int) -> float:
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     p.add_argument("--model", default=SHIPPED, help="model file or run directory")
     p.add_argument("--reps", type=positive_int, default=10, help="timed calls per count and round")
-    p.add_argument("--rounds", type=positive_int, default=3)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--rounds",
+        type=positive_int,
+        default=3,
+        help="rounds, each timing every view count in turn (their median)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated held-out frame")
     args = p.parse_args(argv)
     try:
         config, params = load_model(args.model)

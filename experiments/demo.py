@@ -15,7 +15,7 @@ import jax
 import numpy as np
 
 from indoorbev_jax import viz
-from indoorbev_jax.cli import positive_int
+from indoorbev_jax.cli import HelpFormatter, positive_int
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
 from indoorbev_jax.metrics import Evaluator
@@ -37,11 +37,25 @@ def targets_to_labels(targets, k: int) -> kitti.ObjectLabels:
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="demo_out")
-    p.add_argument("--frames", type=positive_int, default=4)
-    p.add_argument("--model", default=str(SHIPPED), help="model file or run directory")
-    p.add_argument("--seed", type=int, default=2026)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
+    p.add_argument(
+        "--out", default="demo_out", help="folder for frame_<k>.png (ground truth | prediction)"
+    )
+    p.add_argument(
+        "--frames", type=positive_int, default=4, help="held-out test frames to simulate and run"
+    )
+    p.add_argument(
+        "--model",
+        default=str(SHIPPED),
+        help="model file or run directory; when missing, an untrained network runs (default: "
+        "the repository's models/indoorbev_small.msgpack)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=2026,
+        help="seed of the simulated scenes (and of the untrained network's initialisation)",
+    )
     args = p.parse_args(argv)
     from indoorbev_sim.generate import jitted_generate
 

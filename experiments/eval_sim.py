@@ -55,6 +55,7 @@ import jax
 import numpy as np
 
 from indoorbev_jax.cli import (
+    HelpFormatter,
     add_views_argument,
     join_negative_values,
     positive_int,
@@ -222,9 +223,22 @@ def add_frame_set_arguments(p: argparse.ArgumentParser) -> None:
     """``--model`` and the simulated frames to score it on: ``--split``, ``--frames``,
     ``--batch``, ``--seed`` (shared with ``pose_errors.py``, so both see the same frames)."""
     p.add_argument("--model", required=True, help="run directory or exported model file")
-    p.add_argument("--split", default="test", choices=("test", "val"))
-    p.add_argument("--frames", type=positive_int, default=512, help="a multiple of --batch")
-    p.add_argument("--batch", type=positive_int, default=8)
+    p.add_argument(
+        "--split",
+        default="test",
+        choices=("test", "val"),
+        help="test: the held-out layouts and variants; val: the training ones under another "
+        "root seed (pick thresholds and views on it)",
+    )
+    p.add_argument(
+        "--frames", type=positive_int, default=512, help="frames to score, a multiple of --batch"
+    )
+    p.add_argument(
+        "--batch",
+        type=positive_int,
+        default=8,
+        help="frames simulated and run per call; the frames drawn depend on it",
+    )
     seeds = f"{TEST_SEED} for test, {VAL_SEED} for val"
     p.add_argument("--seed", type=int, default=None, help=f"root seed (default: {seeds})")
 
@@ -236,7 +250,7 @@ def check_frame_set(p: argparse.ArgumentParser, args: argparse.Namespace) -> Non
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     add_frame_set_arguments(p)
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument(
@@ -298,7 +312,7 @@ def main(argv=None) -> None:
     p.add_argument(
         "--view-iou", type=float, default=None, help="inference.view_iou (default: the model's)"
     )
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = p.parse_args(join_negative_values(argv))
     check_frame_set(p, args)
     if not 0 <= args.intensity_factor < math.inf:  # as predict's intensity_factor

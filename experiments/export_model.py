@@ -14,17 +14,23 @@ from pathlib import Path
 
 import jax
 
-from indoorbev_jax.cli import add_views_argument
+from indoorbev_jax.cli import HelpFormatter, add_views_argument
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.predict import export_model, load_model, with_thresholds
 from indoorbev_jax.train import load_params
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     p.add_argument("run", help="run directory (config.json + checkpoints) or model file")
     p.add_argument("--out", required=True, help="model file to write (.msgpack)")
-    p.add_argument("--which", default="best", choices=("best", "latest"))
+    p.add_argument(
+        "--which",
+        default="best",
+        choices=("best", "latest"),
+        help="with a run directory: its best checkpoint (validation PQ; the latest where "
+        "there is none) or its latest",
+    )
     p.add_argument(
         "--score-threshold",
         type=float,

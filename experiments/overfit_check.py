@@ -19,16 +19,26 @@ import time
 
 import jax
 
-from indoorbev_jax.cli import positive_int
+from indoorbev_jax.cli import HelpFormatter, positive_int
 from indoorbev_jax.config import Config, ConfigError, with_overrides
 from indoorbev_jax.train import Hyper, init_state, jit_train_step, make_train_step
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--preset", default="small", choices=("paper", "small", "tiny"))
-    p.add_argument("--steps", type=positive_int, default=150)
-    p.add_argument("--learning-rate", type=float, default=1e-3)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
+    p.add_argument(
+        "--preset",
+        default="small",
+        choices=("paper", "small", "tiny"),
+        help="config preset (its train.batch_size frames make the batch)",
+    )
+    p.add_argument("--steps", type=positive_int, default=150, help="training steps")
+    p.add_argument(
+        "--learning-rate",
+        type=float,
+        default=1e-3,
+        help="peak learning rate, reached after a warm-up of up to 20 steps",
+    )
     p.add_argument("--every", type=positive_int, default=25, help="print every N steps")
     p.add_argument("--seed", type=int, default=0, help="seed of the batch (the init uses +1)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",

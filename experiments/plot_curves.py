@@ -11,6 +11,8 @@ import argparse
 import json
 from pathlib import Path
 
+from indoorbev_jax.cli import HelpFormatter
+
 PANELS = (
     ("train", "loss", "training loss"),
     ("train", "dice_final", "train dice loss (last layer)"),
@@ -54,9 +56,9 @@ def main(argv=None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("runs", nargs="+", type=Path)
-    p.add_argument("--out", required=True)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
+    p.add_argument("runs", nargs="+", type=Path, help="run directories (with metrics.jsonl)")
+    p.add_argument("--out", required=True, help="picture file to write (.png)")
     args = p.parse_args(argv)
     logs = {name: read_log(run) for name, run in zip(run_labels(args.runs), args.runs, strict=True)}
     fig, axes = plt.subplots(1, len(PANELS), figsize=(4 * len(PANELS), 3.2))

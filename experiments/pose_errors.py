@@ -43,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_sim import add_frame_set_arguments, check_frame_set, default_seed  # noqa: E402
 
 from indoorbev_jax.boxes import fit_box, segment_boxes  # noqa: E402
-from indoorbev_jax.cli import add_views_argument  # noqa: E402
+from indoorbev_jax.cli import HelpFormatter, add_views_argument  # noqa: E402
 from indoorbev_jax.config import ConfigError  # noqa: E402
 from indoorbev_jax.geometry import box_corners, cell_centers, wrap_angle  # noqa: E402
 from indoorbev_jax.metrics import mask_intersections  # noqa: E402
@@ -213,7 +213,7 @@ def format_summary(table: dict) -> str:
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     add_frame_set_arguments(p)
     p.add_argument("--match-iou", type=float, default=0.5, help="mask IoU a pair exceeds")
     p.add_argument("--json", default=None, help="write the medians here")

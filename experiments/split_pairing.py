@@ -16,18 +16,32 @@ import jax
 import numpy as np
 from indoorbev_sim import generate
 
-from indoorbev_jax.cli import positive_int
+from indoorbev_jax.cli import RawHelpFormatter, positive_int
 from indoorbev_jax.config import Config
 
 
 def main(argv=None) -> dict:
     import eval_sim
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--preset", default="small")
-    p.add_argument("--frames", type=positive_int, default=256)
-    p.add_argument("--batch", type=positive_int, default=8)
-    p.add_argument("--val-seed", type=int, default=eval_sim.VAL_SEED)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=RawHelpFormatter
+    )
+    p.add_argument("--preset", default="small", help="config preset: paper, small or tiny")
+    p.add_argument(
+        "--frames", type=positive_int, default=256, help="frames per set, a multiple of --batch"
+    )
+    p.add_argument(
+        "--batch",
+        type=positive_int,
+        default=8,
+        help="frames drawn per call, as eval_sim.py's --batch (the frames drawn depend on it)",
+    )
+    p.add_argument(
+        "--val-seed",
+        type=int,
+        default=eval_sim.VAL_SEED,
+        help="root seed of the val frames (the test frames keep eval_sim's TEST_SEED)",
+    )
     args = p.parse_args(argv)
     if args.frames % args.batch:
         p.error(f"--frames {args.frames} must be a multiple of --batch {args.batch}")

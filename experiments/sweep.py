@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from indoorbev_jax.cli import exit_with
+from indoorbev_jax.cli import RawHelpFormatter, exit_with
 from indoorbev_jax.config import add_config_arguments, config_from_args
 from indoorbev_jax.sweep import run_sweep, stack_hypers
 
@@ -21,7 +21,12 @@ WEIGHTS = ("cls", "dice", "focal", "dims", "pos", "yaw", "background", "seed")
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        description=__doc__.split(": ``")[0] + ".",  # its example command is the epilog
+        epilog="example:\n  python experiments/sweep.py --preset small --workdir runs/sweep \\\n"
+        "      --learning-rates 1e-4 2e-4 4e-4 --dice-weights 5 5 2\n\n" + __doc__.split("\n\n")[1],
+        formatter_class=RawHelpFormatter,
+    )
     p.add_argument("--workdir", required=True, help="sweep directory (resumed when it exists)")
     p.add_argument("--data", default=None, help="KITTI-style folder (default: simulator)")
     add_config_arguments(p, skip=("--learning-rate", "--eval-every"))
@@ -31,7 +36,7 @@ def main(argv=None) -> int:
         p.add_argument(f"--{name}-weights", type=float, nargs="+", default=None,
                        help=f"K values of loss.{name} weight (default: the config's)")  # fmt: skip
     p.add_argument("--skip-bad-frames", action="store_true", help="skip malformed frames")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     config = config_from_args(args)
     overrides = {

@@ -11,18 +11,18 @@ import argparse
 import logging
 import sys
 
-from indoorbev_jax.cli import exit_with
+from indoorbev_jax.cli import HelpFormatter, exit_with
 from indoorbev_jax.config import add_config_arguments, config_from_args
 from indoorbev_jax.train import train_and_evaluate
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     p.add_argument("--workdir", required=True, help="run directory (resumed when it exists)")
     p.add_argument("--data", default=None, help="KITTI-style folder (default: simulator)")
     add_config_arguments(p)
     p.add_argument("--skip-bad-frames", action="store_true", help="skip malformed frames")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
         "--init-from",
         default=None,

@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING
 
 from indoorbev_jax.cli import (
     INTERRUPTED,
+    HelpFormatter,
+    RawHelpFormatter,
     exit_with,
     join_negative_values,
     nonnegative_int,
@@ -81,69 +83,133 @@ def _add_set(parser: argparse.ArgumentParser, example: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="indoorbev-sim", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="indoorbev-sim",
+        description=__doc__.split("\n\n")[0],
+        epilog=__doc__.split("\n\n", 1)[1],  # the synopsis and the cache
+        formatter_class=RawHelpFormatter,
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     default_cache = os.environ.get("INDOORBEV_SIM_CACHE", "~/.cache/indoorbev_sim/xla")
     preset_help = "config preset (paper, small, tiny; default: DIR/export.json's, else paper)"
+    cache_help = (
+        "persistent XLA cache folder, '' for none (default: %(default)s, from "
+        "INDOORBEV_SIM_CACHE when set)"
+    )
+    seed_help = "root seed of the scenes, in [0, 2**32)"
 
-    ex = sub.add_parser("export", help="write a KITTI-layout dataset (resumable)")
+    ex = sub.add_parser(
+        "export",
+        help="write a KITTI-layout dataset (resumable)",
+        description="Write simulated frames as a KITTI-layout dataset (velodyne/, label_2/, "
+        "mask_2/, train/val/test.txt, export.json), scene by scene: scene j goes to val when "
+        "j % 10 == 8, to test when j % 10 == 9, else to train. The same command after a "
+        "kill resumes.",
+        formatter_class=HelpFormatter,
+    )
     ex.add_argument("--out", required=True, help="dataset root folder")
-    ex.add_argument("--frames", type=positive_int, required=True)
-    ex.add_argument("--seed", type=seed_int, default=0)
+    ex.add_argument(
+        "--frames",
+        type=positive_int,
+        required=True,
+        help="frames to write, in scenes of sim.frames_per_sequence consecutive frames",
+    )
+    ex.add_argument("--seed", type=seed_int, default=0, help=seed_help)
     ex.add_argument("--rosbag", default=None, help="also write a ROS2 bag at this path")
     ex.add_argument("--preset", default=None, help=preset_help)
     _add_set(ex, "e.g. 'sim.sensor_rpy=[0,20,0]'; a resumed export needs the same")
-    ex.add_argument("--no-progress", action="store_true")
-    ex.add_argument("--throttle", type=float, default=0.0, help="pause (s) after each scene")
-    ex.add_argument("--cache", default=default_cache, help="persistent XLA cache folder")
+    ex.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ex.add_argument("--throttle", type=float, default=0.0, help="seconds to pause after each scene")
+    ex.add_argument("--cache", default=default_cache, help=cache_help)
 
-    sh = sub.add_parser("show", help="write a BEV PNG per frame of a KITTI folder")
+    sh = sub.add_parser(
+        "show",
+        help="write a BEV PNG per frame of a KITTI folder",
+        description="Write <out>/<id>.png for frames of a KITTI-layout folder: points coloured "
+        "by height, footprint masks, boxes and class names.",
+        formatter_class=HelpFormatter,
+    )
     sh.add_argument("root", help="dataset root folder")
     sh.add_argument("--out", required=True, help="folder for the PNGs")
     sh.add_argument("--ids", nargs="*", default=None, help="frame ids (default: all)")
     sh.add_argument("--preset", default=None, help=preset_help)
     _add_set(sh, 'e.g. for your own class names --set \'data.class_map={"Desk": "Table"}\'')
 
-    ck = sub.add_parser("check", help="label consistency and class statistics over N frames")
-    ck.add_argument("--frames", type=positive_int, default=200)
-    ck.add_argument("--batch", type=positive_int, default=8)
-    ck.add_argument("--seed", type=seed_int, default=0)
-    ck.add_argument("--preset", default="paper")
-    ck.add_argument("--split", default="train")
+    ck = sub.add_parser(
+        "check",
+        help="label consistency and class statistics over N frames",
+        description="Simulate frames and print label statistics: the share of the labelled "
+        "objects' points inside their own footprint (dilated by a cell) and those inside "
+        "another object's, and the objects per class.",
+        formatter_class=HelpFormatter,
+    )
+    ck.add_argument("--frames", type=positive_int, default=200, help="frames to simulate")
+    ck.add_argument(
+        "--batch", type=positive_int, default=8, help="frames simulated per jitted call"
+    )
+    ck.add_argument("--seed", type=seed_int, default=0, help=seed_help)
+    ck.add_argument("--preset", default="paper", help="config preset: paper, small or tiny")
+    ck.add_argument(
+        "--split",
+        default="train",
+        help="the split's scenes to draw: train, val or test (held-out layouts and variants)",
+    )
     _add_set(ck, "e.g. 'sim.sensor_rpy=[0,20,0]'")
     ck.add_argument("--noise-free", action="store_true", help="no range noise or dropout")
-    ck.add_argument("--cache", default=default_cache, help="persistent XLA cache folder")
+    ck.add_argument("--cache", default=default_cache, help=cache_help)
 
-    ros2 = sub.add_parser("ros2", help="live ROS 2 nodes (pip install -e .[ros])")
-    pb = ros2.add_subparsers(dest="ros2_command", required=True).add_parser(
-        "publish", help="publish simulated PointCloud2 frames and ground-truth markers"
+    ros2 = sub.add_parser(
+        "ros2",
+        help="live ROS 2 nodes (pip install -e .[ros])",
+        description="live ROS 2 nodes (pip install -e .[ros])",
+        formatter_class=HelpFormatter,
     )
-    pb.add_argument("--preset", default="small", help="config preset (paper, small, tiny)")
+    pb = ros2.add_subparsers(dest="ros2_command", required=True).add_parser(
+        "publish",
+        help="publish simulated PointCloud2 frames and ground-truth markers",
+        description="Publish simulated PointCloud2 frames at --rate with their ground truth "
+        "as a MarkerArray, until --frames are out or Ctrl-C.",
+        formatter_class=HelpFormatter,
+    )
+    pb.add_argument("--preset", default="small", help="config preset: paper, small or tiny")
     pb.add_argument("--rate", type=positive_float, default=10.0, help="frames per second")
     pb.add_argument("--frames", type=nonnegative_int, default=0,
                     help="frames to publish (0: until Ctrl-C)")  # fmt: skip
     pb.add_argument("--topic", default="/lidar/points", help="PointCloud2 topic")
     pb.add_argument("--objects-topic", default="/lidar/objects", help="ground-truth MarkerArray")
-    pb.add_argument("--frame-id", default="lidar")
+    pb.add_argument(
+        "--frame-id",
+        default="lidar",
+        help="frame id of the clouds (and of the ground truth without --lidar-rpy)",
+    )
     pb.add_argument("--lidar-rpy", type=rpy_argument, default=(0.0, 0.0, 0.0),
                     metavar="ROLL,PITCH,YAW",
                     help="simulate the lidar tilted, degrees in the robot's level frame (a "
                     "URDF's rpy: pitch 20 is nose down), and publish its clouds in its own "
-                    "frame (--frame-id); the ground truth goes out in --level-frame")  # fmt: skip
+                    "frame (--frame-id); the ground truth goes out in --level-frame "
+                    "(default: 0,0,0, level)")  # fmt: skip
     pb.add_argument(
         "--level-frame",
         default=None,
         help="frame id of the ground truth with --lidar-rpy (its level frame)",
     )
-    pb.add_argument("--seed", type=seed_int, default=0)
-    pb.add_argument("--split", default="test", choices=("train", "val", "test"))
+    pb.add_argument("--seed", type=seed_int, default=0, help=seed_help)
+    pb.add_argument(
+        "--split",
+        default="test",
+        choices=("train", "val", "test"),
+        help="the split's scenes to draw (test: held-out layouts and variants)",
+    )
     pb.add_argument("--record", default=None, help="record what is published into this bag")
-    pb.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"))
+    pb.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"),
+                    help="storage format of the --record bag")  # fmt: skip
     pb.add_argument("--wait-subscribers", type=nonnegative_int, default=0,
-                    help="wait for N subscribers on --topic before the first frame")  # fmt: skip
-    pb.add_argument("--wait-timeout", type=positive_float, default=60.0, help="seconds")
+                    help="wait for this many subscribers on --topic before the first "
+                    "frame")  # fmt: skip
+    pb.add_argument("--wait-timeout", type=positive_float, default=60.0,
+                    help="seconds to wait for --wait-subscribers before giving up")  # fmt: skip
     pb.add_argument("--noise-free", action="store_true", help="no range noise or dropout")
-    pb.add_argument("--cache", default=default_cache, help="persistent XLA cache folder")
+    pb.add_argument("--cache", default=default_cache, help=cache_help)
     pb.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
                     help="the rest goes to rclpy (remappings, log levels)")  # fmt: skip
 

@@ -20,6 +20,25 @@ from pathlib import Path
 import numpy as np
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """``--help`` with "(default: X)" after each option's help, except where there is no
+    default to tell (None, an unset flag's False, an empty list or string) or the help text
+    already tells it (it says "default")."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        unset = default is None or default is False or default == [] or default == ""
+        if unset or "default" in text:  # not `in (None, False)`: 0 == False
+            return text
+        return super()._get_help_string(action)
+
+
+class RawHelpFormatter(HelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """``HelpFormatter`` that prints the description and epilog with their line breaks (a
+    command to copy, say)."""
+
+
 def positive_float(text: str) -> float:
     """argparse type: a finite number > 0."""
     try:
@@ -212,7 +231,8 @@ def add_mount_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="METRES",
         help="the lidar's height above the floor: outside the model's trained heights "
-        "(sim.sensor_height) the cloud is moved to the nearest, output z moved back",
+        "(sim.sensor_height) the cloud is moved to the nearest, output z moved back "
+        "(default: z as read)",
     )
 
 
@@ -336,23 +356,50 @@ def _unpaired_files(root: Path, ids: list[str], every_frame: bool) -> list[str]:
 def build_parser() -> argparse.ArgumentParser:
     from indoorbev_jax.evaluate import add_dataset_config_arguments, add_eval_command
 
-    parser = argparse.ArgumentParser(prog="indoorbev", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="indoorbev",
+        description=__doc__.split("\n\n")[0],
+        epilog=__doc__.split("\n\n", 1)[1],  # the synopsis
+        formatter_class=RawHelpFormatter,
+    )
     commands = parser.add_subparsers(dest="command", required=True)
 
-    dataset = commands.add_parser("dataset", help="dataset tools").add_subparsers(
-        dest="dataset_command", required=True
+    dataset = commands.add_parser(
+        "dataset", help="dataset tools", description="dataset tools", formatter_class=HelpFormatter
+    ).add_subparsers(dest="dataset_command", required=True)
+    check = dataset.add_parser(
+        "check",
+        help="validate a KITTI-style dataset folder",
+        description="Validate every frame of a KITTI-style dataset folder; print statistics "
+        "(objects per class, points per frame) and the first warnings and problems. Exit "
+        "status 1 when there are problems.",
+        formatter_class=HelpFormatter,
     )
-    check = dataset.add_parser("check", help="validate a KITTI-style dataset folder")
     check.add_argument("root", help="dataset folder (velodyne/, label_2/, optional mask_2/)")
-    check.add_argument("--split", default=None, help="split name (<root>/<split>.txt)")
-    check.add_argument("--max-problems", type=positive_int, default=10)
+    check.add_argument(
+        "--split",
+        default=None,
+        help="check only the frames listed in <root>/<split>.txt (default: every frame)",
+    )
+    check.add_argument(
+        "--max-problems",
+        type=positive_int,
+        default=10,
+        help="list at most this many warnings and this many problems; their counts are "
+        "printed in full",
+    )
     add_dataset_config_arguments(check)
     check.set_defaults(func=dataset_check)
 
     add_eval_command(commands)
 
     pred = commands.add_parser(
-        "predict", help="run a trained model on .bin/.pcd/.npy, KITTI or bag input"
+        "predict",
+        help="run a trained model on .bin/.pcd/.npy, KITTI or bag input",
+        description="Run a trained model on .bin/.pcd/.npy files, a KITTI-style folder or a "
+        "ROS 2 bag; write label_2/, mask_2/ and pictures/ per frame into --out. The same "
+        "command after a kill resumes.",
+        formatter_class=HelpFormatter,
     )
     pred.add_argument("model", help="run directory or exported model file (.msgpack)")
     pred.add_argument(
@@ -361,10 +408,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     pred.add_argument("--out", required=True, help="output folder (label_2, mask_2, pictures)")
     pred.add_argument(
-        "--topic", default=None, help="cloud topic of a bag (PointCloud2 or Livox CustomMsg)"
+        "--topic",
+        default=None,
+        help="cloud topic of a bag (PointCloud2 or Livox CustomMsg; default: the bag's only "
+        "cloud topic)",
     )
-    pred.add_argument("--bag-out", default=None, help="also write a bag with the predictions")
-    pred.add_argument("--no-pictures", action="store_true")
+    pred.add_argument(
+        "--bag-out",
+        default=None,
+        help="also write a ROS 2 bag folder with the input clouds (/points) and the "
+        "predictions (/detections)",
+    )
+    pred.add_argument(
+        "--no-pictures",
+        action="store_true",
+        help="do not write pictures/<id>.png (raw points | feature map | predicted masks | "
+        "final BEV); labels and masks only",
+    )
     pred.add_argument(
         "--skip-bad-frames",
         action="store_true",
@@ -387,10 +447,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     pred.set_defaults(func=run_predict)
 
-    ros2 = commands.add_parser("ros2", help="live ROS 2 nodes (pip install -e .[ros])")
+    ros2 = commands.add_parser(
+        "ros2",
+        help="live ROS 2 nodes (pip install -e .[ros])",
+        description="live ROS 2 nodes (pip install -e .[ros])",
+        formatter_class=HelpFormatter,
+    )
     ros2_commands = ros2.add_subparsers(dest="ros2_command", required=True)
     det = ros2_commands.add_parser(
-        "detect", help="inference node: PointCloud2 in; detections, markers, occupancy out"
+        "detect",
+        help="inference node: PointCloud2 in; detections, markers, occupancy out",
+        description="Live ROS 2 inference node: subscribes to PointCloud2 clouds on --topic "
+        "and publishes per cloud, with its stamp and frame id, the detections, markers and "
+        "occupancy grid under --out-ns (the newest cloud is processed, stale ones dropped), "
+        "until Ctrl-C or --max-frames.",
+        formatter_class=HelpFormatter,
     )
     det.add_argument("--checkpoint", required=True, help="run directory or exported model file")
     det.add_argument("--topic", default="/livox/lidar", help="PointCloud2 input topic")
@@ -401,7 +472,12 @@ def build_parser() -> argparse.ArgumentParser:
     det.add_argument(
         "--record", default=None, help="record inputs and outputs into this bag folder"
     )
-    det.add_argument("--storage", default="sqlite3", choices=("sqlite3", "mcap"))
+    det.add_argument(
+        "--storage",
+        default="sqlite3",
+        choices=("sqlite3", "mcap"),
+        help="storage format of the --record bag",
+    )
     det.add_argument(
         "--log-every", type=positive_float, default=5.0, help="seconds between summaries"
     )
@@ -411,7 +487,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="process the finite points of clouds with NaN/Inf points (default: empty output)",
     )
     det.add_argument(
-        "--max-frames", type=nonnegative_int, default=0, help="stop after N frames (0: never)"
+        "--max-frames",
+        type=nonnegative_int,
+        default=0,
+        help="stop after this many processed frames (0: never)",
     )
     _add_intensity(det)
     add_views_argument(det, "the model file's")

@@ -931,26 +931,43 @@ for _kind in (GridConfig, DataConfig, EncoderConfig, BackboneConfig, HeadConfig,
 
 # (flag, train field, type, help) of the options experiments/train.py and sweep.py share.
 _TRAIN_FLAGS = (
-    ("--steps", "total_steps", int, "train.total_steps"),
-    ("--batch-size", "batch_size", int, "train.batch_size"),
-    ("--learning-rate", "learning_rate", float, "train.learning_rate (peak)"),
-    ("--warmup-steps", "warmup_steps", int, "train.warmup_steps"),
-    ("--eval-every", "eval_every", int, "train.eval_every"),
-    ("--checkpoint-every", "checkpoint_every", int, "train.checkpoint_every"),
-    ("--seed", "seed", int, "train.seed"),
-)
+    ("--steps", "total_steps", int,
+     "training steps, train.total_steps (alone it also caps train.warmup_steps)"),
+    ("--batch-size", "batch_size", int, "frames per training step, train.batch_size"),
+    ("--learning-rate", "learning_rate", float,
+     "peak learning rate after the linear warm-up, train.learning_rate"),
+    ("--warmup-steps", "warmup_steps", int, "steps of learning-rate warm-up, train.warmup_steps"),
+    ("--eval-every", "eval_every", int, "steps between validations, train.eval_every"),
+    ("--checkpoint-every", "checkpoint_every", int,
+     "steps between checkpoints, train.checkpoint_every"),
+    ("--seed", "seed", int,
+     "root seed of the run (initialisation, batches, augmentation), train.seed"),
+)  # fmt: skip
 
 
 def add_config_arguments(parser, skip: tuple[str, ...] = ()) -> None:
     """The config options of the training scripts on an ``argparse`` parser: ``--preset``,
     the ``train`` fields of ``_TRAIN_FLAGS`` (less the flags in ``skip``), ``--no-augment``,
     ``--bfloat16`` and ``--set FIELD=VALUE``; ``config_from_args`` reads them back."""
-    parser.add_argument("--preset", default="small", choices=("paper", "small", "tiny"))
+    parser.add_argument(
+        "--preset",
+        default="small",
+        choices=("paper", "small", "tiny"),
+        help="config preset: the model, grid and training settings the other options change",
+    )
     for flag, _, kind, text in _TRAIN_FLAGS:
         if flag not in skip:
-            parser.add_argument(flag, type=kind, help=text)
-    parser.add_argument("--no-augment", action="store_true", help="train.augment = False")
-    parser.add_argument("--bfloat16", action="store_true", help="bfloat16 compute (GPUs)")
+            parser.add_argument(flag, type=kind, help=f"{text} (default: the preset's)")
+    parser.add_argument(
+        "--no-augment",
+        action="store_true",
+        help="train without the augmentation chain (train.augment = False)",
+    )
+    parser.add_argument(
+        "--bfloat16",
+        action="store_true",
+        help="compute in bfloat16 (train.bfloat16 = True; worthwhile on GPUs)",
+    )
     parser.add_argument(
         "--set",
         action="append",

@@ -252,12 +252,23 @@ def eval_command(args: argparse.Namespace) -> int:
 
 def add_eval_command(commands) -> None:
     """Registers ``eval`` on the ``indoorbev`` subcommand parsers."""
+    from indoorbev_jax.cli import HelpFormatter
+
     parser = commands.add_parser(
-        "eval", help="AP@0.25/0.50, PQ/SQ/RQ and mIoU between two KITTI-layout folders"
+        "eval",
+        help="AP@0.25/0.50, PQ/SQ/RQ and mIoU between two KITTI-layout folders",
+        description="Score the predictions of one KITTI-layout folder against the ground "
+        "truth of another: prints the per-class table of AP@0.25/0.50, PQ/SQ/RQ and mIoU and "
+        "the class confusion at mask IoU 0.5.",
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("--gt", required=True, help="ground-truth folder (label_2/, mask_2/)")
     parser.add_argument("--pred", required=True, help="prediction folder (label_2/ + scores)")
-    parser.add_argument("--split", default=None, help="frame list <gt>/<split>.txt")
+    parser.add_argument(
+        "--split",
+        default=None,
+        help="score only the frames listed in <gt>/<split>.txt (default: every frame of --gt)",
+    )
     parser.add_argument("--json", default=None, help="also write the metrics to this file")
     add_dataset_config_arguments(parser)
     parser.set_defaults(func=eval_command)
