@@ -564,12 +564,16 @@ def test_ctrl_c_stops_an_experiment_script_with_one_line(tmp_path):
     import subprocess
     import sys
 
-    args = ["--out", str(tmp_path / "o"), "--frames", "1"]
+    script = REPO / "experiments" / "demo.py"
+    argv = [str(script), "--out", str(tmp_path / "o"), "--frames", "1"]
+    code = (  # SIGINT's handler even where it is inherited ignored; then the script as main
+        "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        f"sys.argv = {argv!r}; sys.path.insert(0, {str(script.parent)!r}); "
+        f"runpy.run_path({str(script)!r}, run_name='__main__')"
+    )
     proc = subprocess.Popen(
-        [sys.executable, str(REPO / "experiments" / "demo.py"), *args],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env={**os.environ, "JAX_PLATFORMS": "cpu"},
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # even if ignored
     )  # fmt: skip
     assert proc.stdout.readline().startswith("model: ")  # main runs, under exit_with
     proc.send_signal(signal.SIGINT)
