@@ -3,7 +3,8 @@
 The file (msgpack: config + parameters, written atomically) is what ``indoorbev predict``,
 ``indoorbev ros2 detect`` and ``make demo`` load; ``models/indoorbev_small.msgpack`` is the
 shipped one. RUN may also be a model file, to store other inference settings in a copy:
-``export_model.py models/indoorbev_small.msgpack --views identity --out fast.msgpack``.
+``export_model.py models/indoorbev_small.msgpack --views identity --out fast.msgpack``, or a
+sweep's workdir with ``--member K``, to take out one of its K models.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import jax
 from indoorbev_jax.cli import HelpFormatter, add_views_argument
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.predict import export_model, load_model, with_thresholds
+from indoorbev_jax.sweep import load_member
 from indoorbev_jax.train import load_params
 
 
@@ -44,11 +46,22 @@ def main(argv=None) -> None:
         default=None,
         help="inference.mask_threshold stored in the file (default: the run's)",
     )
+    p.add_argument(
+        "--member",
+        type=int,
+        default=None,
+        help="with a sweep's workdir: export its model K (0-based, in the order of "
+        "--learning-rates) from the latest checkpoint",
+    )
     add_views_argument(p, "the run's")
     args = p.parse_args(argv)
     from_run = Path(args.run).is_dir()
+    if args.member is not None and not from_run:
+        p.error("--member takes a sweep's workdir, not a model file")
     try:
-        if from_run:
+        if args.member is not None:
+            config, params = load_member(args.run, args.member)
+        elif from_run:
             config, params = load_params(args.run, args.which)
         else:
             config, params = load_model(args.run)
@@ -65,6 +78,8 @@ def main(argv=None) -> None:
     if not same:
         raise SystemExit(f"{path}: parameters did not read back unchanged")
     source = args.which if from_run else "model file"
+    if args.member is not None:
+        source = f"sweep member {args.member}, latest"
     print(f"{args.run} ({source}, preset {config.name}, {count:,} parameters, score "
           f"threshold {config.inference.score_threshold}, mask threshold "
           f"{config.inference.mask_threshold}, views {','.join(config.inference.views)}) -> "

@@ -818,6 +818,27 @@ def test_sweep_resumes_exactly(data, tmp_path):
     assert (killed / "sweep.jsonl").read_text() == ref_log
     with pytest.raises(ValueError, match=r"hypers\.json: the workdir holds a sweep of other"):
         sweep.run_sweep(cfg, killed, stack_hypers(cfg, [1e-3, 2e-3], {}), data, progress=False)
+    # One member taken out: its parameters and its settings, as train.py would train it.
+    config, params = sweep.load_member(tmp_path / "ref", 1)
+    want = jax.tree.map(lambda x: x[1], T.eval_params(ref))
+    jax.tree.map(np.testing.assert_array_equal, params, want)
+    assert config.train.learning_rate == pytest.approx(3e-3, rel=1e-6)  # float32 in hypers
+    assert config.loss.dice_weight == 2.0
+    assert (config.backbone, config.head, config.grid) == (cfg.backbone, cfg.head, cfg.grid)
+    with pytest.raises(ValueError, match=r"--member 2: the sweep in .* has members 0\.\.1"):
+        sweep.load_member(tmp_path / "ref", 2)
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "experiments" / "export_model.py"
+    spec = importlib.util.spec_from_file_location("export_model", path)
+    export_script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(export_script)
+    out = tmp_path / "member1.msgpack"
+    export_script.main([str(tmp_path / "ref"), "--member", "1", "--out", str(out)])
+    from indoorbev_jax.predict import load_model
+
+    _, exported = load_model(out)
+    jax.tree.map(np.testing.assert_array_equal, exported, want)
 
 
 def test_sweep_logs_the_mean_loss_of_each_window(data, tmp_path, monkeypatch):

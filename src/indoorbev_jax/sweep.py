@@ -7,11 +7,13 @@ optimizer state, peak learning rate and loss weights (traced arrays, ``train.Hyp
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +31,7 @@ from indoorbev_jax.train import (
     TrainState,
     check_resume,
     check_run_kind,
+    eval_params,
     gt_database,
     holds_workdir,
     init_state,
@@ -76,6 +79,35 @@ def init_sweep(config: Config, k: int, key: jax.Array) -> TrainState:
     """K identical initial states (same init key, so runs differ only by their Hyper)."""
     state = init_state(config, key)
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (k, *jnp.shape(x))), state)
+
+
+def load_member(workdir, member: int) -> tuple[Config, Any]:
+    """(config, params) of model ``member`` of a sweep's latest checkpoint, as
+    ``train.load_params`` gives a training run's: the config carries that member's learning
+    rate and loss weights, as ``train.py`` would train it."""
+    workdir = Path(workdir)
+    if not (workdir / "hypers.json").is_file():
+        raise FileNotFoundError(f"{workdir}: not a sweep's workdir (no hypers.json)")
+    config = Config.from_dict(json.loads((workdir / "config.json").read_text()))
+    settings = json.loads((workdir / "hypers.json").read_text())
+    k = len(settings["learning_rate"])
+    if not 0 <= member < k:
+        raise ValueError(f"--member {member}: the sweep in {workdir} has members 0..{k - 1}")
+    checkpoints = Checkpoints(workdir, config.train.keep_checkpoints)
+    try:
+        state = checkpoints.restore(init_sweep(config, k, jax.random.key(0)))
+    finally:
+        checkpoints.close()
+    if state is None:
+        raise FileNotFoundError(f"{workdir}: no checkpoint found")
+    params = jax.tree.map(lambda x: x[member], eval_params(state))
+    loss = {f"{name}_weight": values[member] for name, values in settings["weights"].items()}
+    config = dataclasses.replace(
+        config,
+        train=dataclasses.replace(config.train, learning_rate=settings["learning_rate"][member]),
+        loss=dataclasses.replace(config.loss, **loss),
+    )
+    return config, params
 
 
 def make_sweep_step(config: Config, database: ObjectDatabase | None = None):

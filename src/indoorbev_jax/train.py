@@ -1108,7 +1108,8 @@ def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config
     if _other_kind(workdir, "train"):
         raise ValueError(
             f"{workdir}: a sweep's workdir: its checkpoints hold K stacked models, which "
-            "predict, export and --init-from cannot load as one model"
+            "predict, export and --init-from cannot load as one model (export one with "
+            "experiments/export_model.py WORKDIR --member K --out F)"
         )
     template = init_state(config, jax.random.key(0))
     # No best/ made where there is none (orbax creates the folder it is given).
