@@ -31,7 +31,7 @@ def main(argv=None) -> None:
         default="best",
         choices=("best", "latest"),
         help="with a run directory: its best checkpoint (validation PQ; the latest where "
-        "there is none) or its latest",
+        "there is none) or its latest (a sweep's --member: always its latest)",
     )
     p.add_argument(
         "--score-threshold",

@@ -272,11 +272,13 @@ class MjLidar:
                 f"{self.model.ngeom} geoms; pass an MjData of the model given at construction"
             )
         m = self.model
+        # Copies: MuJoCo keeps rgba and matid as float32/int32 already, and a view of the
+        # live model in this asynchronous call would see an edit made after it returned.
         looks = {
-            "geom_size": np.asarray(m.geom_size, np.float32),
-            "geom_rgba": np.asarray(m.geom_rgba, np.float32),
-            "geom_matid": np.asarray(m.geom_matid, np.int32),
-            "mat_rgba": np.asarray(m.mat_rgba, np.float32).reshape(-1, 4),
+            "geom_size": np.array(m.geom_size, np.float32),
+            "geom_rgba": np.array(m.geom_rgba, np.float32),
+            "geom_matid": np.array(m.geom_matid, np.int32),
+            "mat_rgba": np.array(m.mat_rgba, np.float32).reshape(-1, 4),
         }
         return self._run(
             looks,

@@ -233,6 +233,22 @@ def test_intensity_units_map_onto_the_simulators_range():
         P.intensity_factor(-1.0, unit)
 
 
+def test_an_absurd_intensity_neither_switches_units_nor_passes_as_valid(model_file):
+    """One point at intensity 1e25 picked Livox units for the frame and, under "auto", every
+    later one; clipped to 1, it then passed pad_points' intensity rule as a valid point."""
+    config, params = P.load_model(model_file)
+    predictor = P.Predictor(config, params)
+    cloud = _scans(1, seed=4, points=300)[0]  # intensities in [0, 1]
+    loud = cloud.copy()
+    loud[0, 3] = 1e25
+    _, valid, counts = predictor.prepare(loud)
+    assert predictor.last_intensity_factor == 1.0
+    assert counts["nonfinite_points"] == 1 and np.isfinite(cloud).all()
+    assert valid.sum() == predictor.prepare(cloud)[1].sum() - 1
+    predictor.prepare(cloud)
+    assert predictor.last_intensity_factor == 1.0  # the next clean frame keeps [0, 1] units
+
+
 def test_livox_cloud_gives_the_unit_clouds_prediction(model_file, tmp_path, capsys):
     config, params = P.load_model(model_file)
     rng = np.random.default_rng(2)

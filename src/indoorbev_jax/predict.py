@@ -38,7 +38,7 @@ from indoorbev_jax.data import kitti
 from indoorbev_jax.data.clouds import SUFFIXES as CLOUD_SUFFIXES
 from indoorbev_jax.data.clouds import read_cloud
 from indoorbev_jax.data.dataset import pad_points
-from indoorbev_jax.geometry import as_points, in_workspace, wrap_angle
+from indoorbev_jax.geometry import as_points, in_workspace, usable, wrap_angle
 from indoorbev_jax.inference import apply_views, panoptic_inference, unview_cells
 from indoorbev_jax.models import IndoorBEV
 from indoorbev_jax.mount import LEVEL, LidarMount, check_level_frame
@@ -80,9 +80,11 @@ def intensity_factor(units: str | float, points: np.ndarray) -> float:
 
 
 def normalize_intensity(points: np.ndarray, factor: float) -> np.ndarray:
-    """float32 [N, 4], intensity times ``factor`` clipped to [0, 1] (the simulator's range)."""
+    """float32 [N, 4], intensity times ``factor`` clipped to [0, 1] (the simulator's range).
+    Unusable points (``geometry.usable``) keep theirs, so ``pad_points`` still counts them."""
     points = as_points(points).copy()
-    points[:, 3] = np.clip(points[:, 3] * np.float32(factor), 0.0, 1.0)
+    scaled = np.clip(points[:, 3] * np.float32(factor), 0.0, 1.0)
+    points[:, 3] = np.where(usable(points), scaled, points[:, 3])
     return points
 
 
@@ -402,9 +404,10 @@ class Predictor:
         intensity's factor as ``last_intensity_factor``."""
         cfg = self.config
         points = self.mount.apply(points, cfg.sim.sensor_height)
-        # "auto" reads the workspace's points only: a garbage frame's (1e30 m, NaN)
-        # intensities must not switch the units of every later frame.
-        factor = intensity_factor(self.intensity, points[in_workspace(points, cfg.grid)])
+        # "auto" reads the workspace's usable points only: a garbage frame's (1e30 m, NaN,
+        # an intensity of 1e25) values must not switch the units of every later frame.
+        usable_here = in_workspace(points, cfg.grid) & usable(points)
+        factor = intensity_factor(self.intensity, points[usable_here])
         if self.intensity == "auto":
             self._auto_factor = factor = min(factor, self._auto_factor)
         self.last_intensity_factor = factor

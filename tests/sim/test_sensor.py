@@ -228,6 +228,14 @@ def test_mjlidar_scans_host_mujoco_states_like_scan():
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
         seen = np.asarray(got.geom_id == m.ngeom - 1).sum()
         assert (seen > 0) == (edit == "size"), edit
+    # An edit right after a call must not reach that call: rgba and matid went in as views
+    # of the live model (float32 / int32 already) while the call ran asynchronously.
+    m.geom_rgba[-1, 3] = 1.0
+    for k in range(10):
+        scan = lidar(d, jax.random.key(k), frame=0)
+        m.geom_rgba[-1, 3] = 0.0
+        assert np.asarray(scan.geom_id == m.ngeom - 1).sum() > 0, k
+        m.geom_rgba[-1, 3] = 1.0
     # pose_from_site reads MjData's [n, 9] matrices as MJX's [n, 3, 3] (an IndexError).
     host, device = sensor.pose_from_site(d, 0), sensor.pose_from_site(mjx.put_data(m, d), 0)
     np.testing.assert_array_equal(host.rot, device.rot)
