@@ -28,10 +28,10 @@ def main(argv=None) -> None:
     p.add_argument("--out", required=True, help="model file to write (.msgpack)")
     p.add_argument(
         "--which",
-        default="best",
+        default=None,
         choices=("best", "latest"),
         help="with a run directory: its best checkpoint (validation PQ; the latest where "
-        "there is none) or its latest (a sweep's --member: always its latest)",
+        "there is none) or its latest (default: best; a sweep's --member: always its latest)",
     )
     p.add_argument(
         "--score-threshold",
@@ -56,8 +56,13 @@ def main(argv=None) -> None:
     add_views_argument(p, "the run's")
     args = p.parse_args(argv)
     from_run = Path(args.run).is_dir()
+    if not Path(args.run).exists():
+        p.exit(2, f"export_model: {args.run}: no such model file or run directory\n")
     if args.member is not None and not from_run:
         p.error("--member takes a sweep's workdir, not a model file")
+    if args.member is not None and args.which is not None:
+        p.error("--which applies to a training run; a sweep member comes from its latest")
+    args.which = args.which or "best"
     try:
         if args.member is not None:
             config, params = load_member(args.run, args.member)

@@ -413,6 +413,7 @@ def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
         ("eval_sim", ["--model", "m", "--batch", "0"], "argument --batch: must be > 0, got 0"),
         ("eval_sim", ["--model", "m", "--frames", "-8"], "argument --frames: must be > 0, got -8"),
         ("pose_errors", ["--model", "none.msgpack"], "none.msgpack: no such model file or run"),
+        ("export_model", ["nowhere", "--member", "0", "--out", "x"], "nowhere: no such model file"),
         # Before 2026-12-06 (night): ZeroDivisionError or a JAX TypeError after compiling,
         # a silent run, or an override printed as applied and replaced.
         ("demo", ["--frames", "0"], "argument --frames: must be > 0, got 0"),

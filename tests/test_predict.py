@@ -616,7 +616,7 @@ def test_predict_resumes_and_refuses_another_runs_outputs(model_file, tmp_path, 
     P.predict(model_file, data, early, views=("mirror_x",), pictures=False, verbose=False)
     assert json.loads((early / "predict.json").read_text())["views"] == ["mirror_x"]
     # ... but another tool's predict.json, or an unreadable one, is not replaced unasked.
-    for text in ('{"detector": "other"}', "not json"):
+    for text in ('{"detector": "other"}', "not json", '[{"image_id": 0}]'):  # a list: COCO
         (early / "predict.json").write_text(text)
         for d in ("label_2", "mask_2"):
             shutil.rmtree(early / d, ignore_errors=True)

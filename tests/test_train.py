@@ -818,8 +818,11 @@ def test_sweep_resumes_exactly(data, tmp_path):
     assert (killed / "sweep.jsonl").read_text() == ref_log
     with pytest.raises(ValueError, match=r"hypers\.json: the workdir holds a sweep of other"):
         sweep.run_sweep(cfg, killed, stack_hypers(cfg, [1e-3, 2e-3], {}), data, progress=False)
-    # One member taken out: its parameters and its settings, as train.py would train it.
+    # One member taken out: its parameters and its settings, as train.py would train it; the
+    # workdir is only read (a best/ made by the restore marked it a training run).
+    listing = sorted(p.name for p in (tmp_path / "ref").iterdir())
     config, params = sweep.load_member(tmp_path / "ref", 1)
+    assert sorted(p.name for p in (tmp_path / "ref").iterdir()) == listing
     want = jax.tree.map(lambda x: x[1], T.eval_params(ref))
     jax.tree.map(np.testing.assert_array_equal, params, want)
     assert config.train.learning_rate == pytest.approx(3e-3, rel=1e-6)  # float32 in hypers
@@ -827,6 +830,9 @@ def test_sweep_resumes_exactly(data, tmp_path):
     assert (config.backbone, config.head, config.grid) == (cfg.backbone, cfg.head, cfg.grid)
     with pytest.raises(ValueError, match=r"--member 2: the sweep in .* has members 0\.\.1"):
         sweep.load_member(tmp_path / "ref", 2)
+    (killed / "hypers.json").write_text('{"learning_rate": [1e-3,')
+    with pytest.raises(ValueError, match=r"killed/hypers\.json: not valid JSON"):
+        sweep.load_member(killed, 0)
     import importlib.util
 
     path = Path(__file__).resolve().parents[1] / "experiments" / "export_model.py"
@@ -834,6 +840,9 @@ def test_sweep_resumes_exactly(data, tmp_path):
     export_script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(export_script)
     out = tmp_path / "member1.msgpack"
+    with pytest.raises(SystemExit):  # a sweep member comes from the latest checkpoint
+        export_script.main([str(tmp_path / "ref"), "--member", "1", "--which", "best",
+                            "--out", str(out)])  # fmt: skip
     export_script.main([str(tmp_path / "ref"), "--member", "1", "--out", str(out)])
     from indoorbev_jax.predict import load_model
 

@@ -522,7 +522,9 @@ def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
             saved = json.loads(manifest.read_text())
         except (OSError, ValueError) as e:
             saved = {"unreadable": str(e)}
-        if isinstance(saved, dict) and "model" in saved:
+        if not isinstance(saved, dict):  # a JSON list (COCO results), null, a string
+            saved = {"unreadable": f"not a JSON object but a {type(saved).__name__}"}
+        if "model" in saved:
             saved.setdefault("boxes", "head")  # runs before the entry wrote the head's boxes
         if saved == run:
             return

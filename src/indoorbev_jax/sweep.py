@@ -88,12 +88,20 @@ def load_member(workdir, member: int) -> tuple[Config, Any]:
     workdir = Path(workdir)
     if not (workdir / "hypers.json").is_file():
         raise FileNotFoundError(f"{workdir}: not a sweep's workdir (no hypers.json)")
-    config = Config.from_dict(json.loads((workdir / "config.json").read_text()))
-    settings = json.loads((workdir / "hypers.json").read_text())
+    texts = {}
+    for name in ("config.json", "hypers.json"):
+        try:
+            texts[name] = json.loads((workdir / name).read_text())
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{workdir / name}: not valid JSON ({e})") from None
+    config, settings = Config.from_dict(texts["config.json"]), texts["hypers.json"]
     k = len(settings["learning_rate"])
     if not 0 <= member < k:
         raise ValueError(f"--member {member}: the sweep in {workdir} has members 0..{k - 1}")
-    checkpoints = Checkpoints(workdir, config.train.keep_checkpoints)
+    if not (workdir / "checkpoints").is_dir():  # orbax would create the folder: read only
+        raise FileNotFoundError(f"{workdir}: no checkpoint found")
+    # metric=None: no best/ (a training run's mark), as run_sweep itself.
+    checkpoints = Checkpoints(workdir, config.train.keep_checkpoints, None)
     try:
         state = checkpoints.restore(init_sweep(config, k, jax.random.key(0)))
     finally:

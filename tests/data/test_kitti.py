@@ -396,7 +396,9 @@ def test_a_mid360_scan_with_three_or_five_columns_is_refused(tmp_path, half, cei
     kitti.write_points(tmp_path / "ok.bin", scan)
     np.testing.assert_array_equal(kitti.read_points(tmp_path / "ok.bin"), scan)
     line = np.arange(len(scan)) % 4  # the emitter, as a 5th column
-    for cols, points in ((3, scan[:, :3]), (5, np.c_[scan, line].astype(np.float32))):
-        points.tofile(tmp_path / f"c{cols}.bin")
-        with pytest.raises(kitti.DatasetError, match=rf"c{cols}\.bin: looks like {cols} float32"):
-            kitti.read_points(tmp_path / f"c{cols}.bin")
+    time = np.arange(len(scan)) * 5e-6  # or each point's time (read in a hall before)
+    for name, cols, points in (("xyz", 3, scan[:, :3]), ("line", 5, np.c_[scan, line]),
+                               ("time", 5, np.c_[scan, time])):  # fmt: skip
+        points.astype(np.float32).tofile(tmp_path / f"{name}.bin")
+        with pytest.raises(kitti.DatasetError, match=rf"{name}\.bin: looks like {cols} float32"):
+            kitti.read_points(tmp_path / f"{name}.bin")

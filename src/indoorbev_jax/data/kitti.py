@@ -174,20 +174,26 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
 # may use a gap at which another stride's file realigns: 3 skips 4 (a 4-column file read
 # as 3), 4 skips 3 and 5. Stride 5's gap 4 is also where a 4-column file realigns (20
 # words), so a 5-emitter lidar's genuine file looked like 5 columns; stride 5 uses it only
-# when the 5th column holds whole numbers (a ring, line or tag id), which a 4-column file
-# read as 5 (x, y, z and intensity in turn) does not.
+# when the 5th column holds whole numbers (a ring, line or tag id) or never decreases (a
+# time), which a 4-column file read as 5 (x, y, z and intensity in turn) does not.
 _STEP_GAPS = {3: (1, 2, 3), 4: (1, 2, 4), 5: (1, 2)}
 
 
 def _whole_fifth_column(words: np.ndarray) -> bool:
+    """Whether the 5th of 5 columns reads as an id (whole numbers) or a time (never
+    decreasing), in 99 % of the points."""
     fifth = words[: words.size // 5 * 5].reshape(-1, 5)[:, 4]
     fifth = fifth[np.isfinite(fifth)]
-    return len(fifth) >= 64 and float(np.mean(fifth == np.round(fifth))) >= 0.99
+    if len(fifth) < 64:
+        return False
+    whole = float(np.mean(fifth == np.round(fifth)))
+    rising = float(np.mean(np.diff(fifth) >= 0))
+    return max(whole, rising) >= 0.99
 
 
 def _median_step(words: np.ndarray, cols: int) -> float:
-    """The least, over the gaps of ``_STEP_GAPS`` (and gap 4 for a 5th column of whole
-    numbers), median distance between finite points that many apart in ``words`` read as
+    """The least, over the gaps of ``_STEP_GAPS`` (and gap 4 for a 5th column of ids or
+    times), median distance between finite points that many apart in ``words`` read as
     ``cols`` columns (x, y, z first)."""
     n = words.size // cols
     xyz = words[: n * cols].reshape(n, cols)[:, :3].astype(np.float64)
