@@ -90,19 +90,22 @@ def seed_int(text: str) -> int:
 
 # The same checks for library arguments (what the argparse types above leave to Python
 # callers): a ValueError naming the argument.
+def _is_whole(value) -> bool:
+    """An int or numpy integer, not a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+
+
 def check_whole(name: str, value, minimum: int, note: str = "") -> int:
     """``value`` if it is an int (not a bool) >= ``minimum``; ``note`` follows the bound in
     the message, e.g. " (0: never)"."""
-    whole = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
-    if not whole or value < minimum:
+    if not _is_whole(value) or value < minimum:
         raise ValueError(f"{name}: expected a whole number {_bound(minimum)}{note}, got {value!r}")
     return int(value)  # numpy integers too
 
 
 def check_seed(name: str, value) -> int:
     """``value`` if it is a whole number in [0, 2**32) (``jax.random.key``'s distinct seeds)."""
-    whole = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
-    if not (whole and 0 <= value < SEED_LIMIT):
+    if not (_is_whole(value) and 0 <= value < SEED_LIMIT):
         raise ValueError(f"{name}: expected a whole number in [0, 2**32), got {value!r}")
     return int(value)
 

@@ -759,13 +759,13 @@ class Evaluator:
                     f"{_tags_name(name)}: expected shape {classes.shape} (targets), got {t.shape}"
                 )
         # All B frames or none: a refused frame i must not leave frames 0..i-1 behind.
-        kept = (len(self._ap_frames), len(self._gt_tags), copy.deepcopy(self._panoptic))
+        start, panoptic = self.num_frames, copy.deepcopy(self._panoptic)
         try:
             for i in range(classes.shape[0]):
                 self._add_batch_frame(i, out, masks, classes, valid, ids, tags)
         except Exception:
-            del self._ap_frames[kept[0] :], self._gt_tags[kept[1] :]
-            self._panoptic = kept[2]
+            del self._ap_frames[start:], self._gt_tags[start:]  # appended in step
+            self._panoptic = panoptic
             raise
 
     def _add_batch_frame(self, i, out, masks, classes, valid, ids, tags) -> None:

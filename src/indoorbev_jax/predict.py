@@ -531,8 +531,7 @@ def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
         # A run stopped before its first frame (Ctrl-C while compiling) left only its
         # predict.json: nothing to mix, so another run's settings may take the folder.
         # Another tool's (or an unreadable) predict.json is never replaced unasked.
-        ours_only = isinstance(saved, dict) and saved.get("format") == PREDICT_FORMAT
-        if not overwrite and (ours or not ours_only):
+        if not overwrite and (ours or saved.get("format") != PREDICT_FORMAT):
             diff = sorted(k for k in run.keys() | saved.keys() if run.get(k) != saved.get(k))
             shown = ", ".join(f"{k}: {saved.get(k)!r} -> {run.get(k)!r}" for k in diff)
             raise ValueError(
@@ -681,12 +680,12 @@ def predict(
             picture_path = out / "pictures" / f"{frame.frame_id}.png"
             wanted = [label_path, mask_path] + ([picture_path] if pictures else [])
             summary["frames"] += 1
-            damage = None
-            if all(p.exists() for p in wanted):
-                damage = _damaged_outputs(label_path, mask_path, pictures and picture_path, config)
-                if damage:  # a power cut or an edit: predicted again below
-                    print(f"{count}: {damage}; predicting it again", file=sys.stderr, flush=True)
-            if all(p.exists() for p in wanted) and not damage:
+            done = all(p.exists() for p in wanted)
+            picture = pictures and picture_path
+            damage = done and _damaged_outputs(label_path, mask_path, picture, config)
+            if damage:  # a power cut or an edit: predicted again below
+                print(f"{count}: {damage}; predicting it again", file=sys.stderr, flush=True)
+            if done and not damage:
                 summary["resumed_frames"] += 1
                 # No model call, but the cloud is read as the first run read it: "auto"
                 # intensity units carry over to later frames (a resumed run read a dark Livox

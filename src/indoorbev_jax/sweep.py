@@ -39,6 +39,7 @@ from indoorbev_jax.train import (
     make_sources,
     make_train_step,
     prefetch,
+    read_json,
     run_record,
     truncate_log,
     write_text_atomic,
@@ -88,13 +89,8 @@ def load_member(workdir, member: int) -> tuple[Config, Any]:
     workdir = Path(workdir)
     if not (workdir / "hypers.json").is_file():
         raise FileNotFoundError(f"{workdir}: not a sweep's workdir (no hypers.json)")
-    texts = {}
-    for name in ("config.json", "hypers.json"):
-        try:
-            texts[name] = json.loads((workdir / name).read_text())
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{workdir / name}: not valid JSON ({e})") from None
-    config, settings = Config.from_dict(texts["config.json"]), texts["hypers.json"]
+    config = Config.from_dict(read_json(workdir / "config.json"))
+    settings = read_json(workdir / "hypers.json")
     k = len(settings["learning_rate"])
     if not 0 <= member < k:
         raise ValueError(f"--member {member}: the sweep in {workdir} has members 0..{k - 1}")

@@ -843,7 +843,8 @@ def run_record(data: str | None, kind: str = "train") -> dict:
 _KIND_FILES = {"train": ("metrics.jsonl", "best"), "sweep": ("hypers.json", "sweep.jsonl")}
 
 
-def _read_run_json(path: Path) -> dict:
+def read_json(path: Path):
+    """``path``'s JSON; a file that is not JSON is a ValueError naming it."""
     try:
         return json.loads(path.read_text())
     except json.JSONDecodeError as e:
@@ -856,7 +857,7 @@ def _other_kind(workdir: Path, kind: str) -> str | None:
     files only the other kind writes."""
     other = "sweep" if kind == "train" else "train"
     run_path = workdir / "run.json"
-    recorded = _read_run_json(run_path).get("kind") if run_path.exists() else None
+    recorded = read_json(run_path).get("kind") if run_path.exists() else None
     if recorded:
         return f"run.json says {other!r}" if recorded == other else None
     found = [name for name in _KIND_FILES[other] if (workdir / name).exists()]
@@ -907,7 +908,7 @@ def check_resume(
         log.info("note: resuming with (saved -> given):\n%s", "\n".join(lines.values()))
     if not run_path.exists():  # a run from before run.json was kept: nothing to compare
         return
-    record = _read_run_json(run_path)
+    record = read_json(run_path)
     saved = record["data"]
     if saved != data:
         raise ValueError(
@@ -937,30 +938,37 @@ def holds_workdir(run_fn):
     def run(config, workdir, *args, **kwargs):
         workdir = Path(workdir)
         workdir.mkdir(parents=True, exist_ok=True)
-        if jax.process_index() != 0:  # the hosts of one multi-host run share the workdir
-            return run_fn(config, workdir, *args, **kwargs)
         with open(workdir / ".lock", "a+") as lock:
-            try:
-                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
+            if _lock_workdir(lock, workdir):
                 lock.seek(0)
-                holder = lock.read().strip() or "another process"
-                raise ValueError(
-                    f"{workdir}: in use by another run ({holder}); wait for it to end, or "
-                    "use another workdir"
-                ) from None
-            except OSError as e:  # a filesystem without flock (Lustre without -o flock)
-                if e.errno not in (errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOLCK):
-                    raise
-                log.warning("%s: cannot lock the workdir (%s); running without", workdir, e)
-                return run_fn(config, workdir, *args, **kwargs)
-            lock.seek(0)
-            lock.truncate()
-            lock.write(f"pid {os.getpid()}\n")
-            lock.flush()
+                lock.truncate()
+                lock.write(f"pid {os.getpid()}\n")
+                lock.flush()
             return run_fn(config, workdir, *args, **kwargs)
 
     return run
+
+
+def _lock_workdir(lock, workdir: Path) -> bool:
+    """Takes ``holds_workdir``'s lock on the open ``lock`` file: True when taken, False
+    when the run goes on without one; another run holding it is a ValueError naming it."""
+    if jax.process_index() != 0:  # the hosts of one multi-host run share the workdir
+        return False
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        holder = lock.read().strip() or "another process"
+        raise ValueError(
+            f"{workdir}: in use by another run ({holder}); wait for it to end, or use another "
+            "workdir"
+        ) from None
+    except OSError as e:  # a filesystem without flock (Lustre without -o flock)
+        if e.errno not in (errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOLCK):
+            raise
+        log.warning("%s: cannot lock the workdir (%s); running without", workdir, e)
+        return False
+    return True
 
 
 @holds_workdir
@@ -1101,10 +1109,7 @@ def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config
             f"{workdir}: not a training run directory (no config.json); expected the --workdir "
             "of experiments/train.py or an exported model file (.msgpack)"
         )
-    try:
-        config = Config.from_dict(json.loads(config_file.read_text()))
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{config_file}: not valid JSON ({e})") from None
+    config = Config.from_dict(read_json(config_file))
     if _other_kind(workdir, "train"):
         raise ValueError(
             f"{workdir}: a sweep's workdir: its checkpoints hold K stacked models, which "

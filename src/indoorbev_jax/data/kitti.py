@@ -179,7 +179,7 @@ def read_points(path: str | os.PathLike) -> np.ndarray:
 _STEP_GAPS = {3: (1, 2, 3), 4: (1, 2, 4), 5: (1, 2)}
 
 
-def _whole_fifth_column(words: np.ndarray) -> bool:
+def _fifth_column_is_id_or_time(words: np.ndarray) -> bool:
     """Whether the 5th of 5 columns reads as an id (whole numbers) or a time (never
     decreasing), in 99 % of the points."""
     fifth = words[: words.size // 5 * 5].reshape(-1, 5)[:, 4]
@@ -200,7 +200,7 @@ def _median_step(words: np.ndarray, cols: int) -> float:
     xyz = xyz[np.isfinite(xyz).all(axis=1) & (np.abs(xyz) < 1e6).all(axis=1)]
     if len(xyz) < 64:
         return np.nan
-    gaps = _STEP_GAPS[cols] + ((4,) if cols == 5 and _whole_fifth_column(words) else ())
+    gaps = _STEP_GAPS[cols] + ((4,) if cols == 5 and _fifth_column_is_id_or_time(words) else ())
     return min(float(np.median(np.linalg.norm(xyz[g:] - xyz[:-g], axis=1))) for g in gaps)
 
 
