@@ -208,8 +208,8 @@ def _other_column_count(words: np.ndarray) -> tuple[int, float, float] | None:
     """(columns, spread as 4, spread as columns) when ``words`` read far more coherently as 3
     (x, y, z) or 5 (x, y, z, intensity, ring) columns than as 4, else None. A scan stores its
     points in firing order, so consecutive points are near; read with the wrong stride,
-    coordinates and intensities mix and the steps grow (docs/DATASET.md: 2.1x at the
-    closest, a 3-column mid360 scan in a 40 x 30 m hall, to thousands of x). A file
+    coordinates and intensities mix and the steps grow (``experiments/column_check_sweep.py``
+    measures the rule; docs/DATASET.md has its figures). A file
     of 12 or 20 bytes a point passes the size rule whenever N % 4 == 0, a quarter of them."""
     words = words[:60_000]  # about 15,000 points decide
     spread4 = _median_step(words, 4)
