@@ -243,8 +243,11 @@ def _file_frames(paths: list[Path]) -> Iterator[Frame]:
     for path in paths:
         try:
             yield Frame(path.stem, read_cloud(path))
-        except (ValueError, OSError) as e:  # DatasetError, or a file no check foresaw
+        except (ValueError, OSError) as e:  # DatasetError, or an unreadable file
             yield Frame(path.stem, None, error=e)
+        except Exception as e:  # a damage no check foresaw: still one bad frame, named
+            error = kitti.DatasetError(f"{path}: unreadable ({type(e).__name__}: {e})")
+            yield Frame(path.stem, None, error=error)
 
 
 def _cloud_files(folder: Path) -> list[Path]:

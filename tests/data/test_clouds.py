@@ -108,11 +108,27 @@ def test_bad_pcd_files_are_named(tmp_path):
         with pytest.raises(kitti.DatasetError, match=message):
             clouds.read_pcd(path)
     _write_pcd(path, POINTS, "ascii")
-    lines = path.read_bytes().splitlines(keepends=True)
-    lines[14] = b"1 2 3\n"  # point line 4 cut short
-    path.write_bytes(b"".join(lines))
-    with pytest.raises(kitti.DatasetError, match=r"b\.pcd: DATA ascii: .*column"):
-        clouds.read_pcd(path)
+    ascii_lines = path.read_bytes().splitlines(keepends=True)
+    # Errors name the file's line (numpy counted data rows, from 0 or from 1).
+    for k, row, message in [
+        (14, b"1 2 3\n", r"b\.pcd:15: 3 values, expected 10 \(FIELDS x COUNT\)"),
+        (11, b"1 2 3\n", r"b\.pcd:12: 3 values, expected 10"),
+        (11, b"1 2 3 4 5 6 7 8 9 x\n", r"b\.pcd:12: a value is not a number \('1 2 3 .* x'\)"),
+    ]:
+        lines = list(ascii_lines)
+        lines[k] = row
+        path.write_bytes(b"".join(lines))
+        with pytest.raises(kitti.DatasetError, match=message):
+            clouds.read_pcd(path)
+    # A keyword without its value was a bare IndexError, which stopped a predict run.
+    for old, new, message in [
+        (b"POINTS 50", b"POINTS", r"b\.pcd:10: POINTS takes one value, got 0"),
+        (b"WIDTH 50", b"WIDTH  ", r"b\.pcd:7: WIDTH takes one value, got 0"),
+        (b"HEIGHT 1", b"HEIGHT 1 1", r"b\.pcd:8: HEIGHT takes one value, got 2"),
+    ]:
+        path.write_bytes(good.replace(old, new))
+        with pytest.raises(kitti.DatasetError, match=message):
+            clouds.read_pcd(path)
 
 
 def test_npy_arrays_and_structured_arrays(tmp_path):
@@ -186,15 +202,21 @@ def test_a_bad_file_in_a_folder_is_a_bad_frame_not_a_stop(tmp_path, monkeypatch)
     np.save(tmp_path / "b.npy", POINTS)
     read = clouds.read_cloud
 
+    np.save(tmp_path / "c.npy", POINTS)
+
     def flaky(path):
         if path.name == "a.npy":
             raise ValueError("cannot reshape array of size 0 into shape (0,newaxis)")
+        if path.name == "b.npy":  # a damage no reader check foresaw
+            raise IndexError("list index out of range")
         return read(path)
 
     monkeypatch.setattr(P, "read_cloud", flaky)
     count, frames = P.open_input(tmp_path)
-    a, b = list(frames)
-    assert count == 2 and isinstance(a.error, ValueError) and b.error is None
+    a, b, c = list(frames)
+    assert count == 3 and isinstance(a.error, ValueError) and c.error is None
+    assert isinstance(b.error, kitti.DatasetError)
+    assert str(b.error) == f"{tmp_path / 'b.npy'}: unreadable (IndexError: list index out of range)"
 
 
 @pytest.mark.parametrize("data", ["binary", "ascii"])

@@ -1,6 +1,7 @@
 """KITTI-style files: round trips, the camera convention, and bad input named clearly."""
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -69,6 +70,16 @@ def test_points_round_trip_and_bad_size(tmp_path):
         kitti.read_points(tmp_path / "bad.bin")
     (tmp_path / "empty.bin").write_bytes(b"")
     assert kitti.read_points(tmp_path / "empty.bin").shape == (0, 4)
+    # Garbage bytes (signalling NaNs among them) read or are refused without numpy's
+    # RuntimeWarning, which names no file.
+    garbage = np.random.default_rng(1).integers(0, 256, 64 * 16, dtype=np.uint8).tobytes()
+    (tmp_path / "garbage.bin").write_bytes(garbage)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            kitti.read_points(tmp_path / "garbage.bin")
+        except kitti.DatasetError:
+            pass
 
 
 def test_float64_points_are_refused_and_float32_clouds_are_not(tmp_path):

@@ -37,6 +37,7 @@ INTENSITY_NAMES = ("intensity", "reflectivity", "i")
 _PCD_KINDS = {"F": "f", "I": "i", "U": "u"}
 _PCD_HEADER = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT",
                "POINTS", "DATA")  # fmt: skip
+_PCD_ONE_VALUE = ("VERSION", "WIDTH", "HEIGHT", "POINTS", "DATA")
 
 
 def read_cloud(path: str | os.PathLike) -> np.ndarray:
@@ -107,6 +108,10 @@ def _parse_pcd_header(path: Path, data: bytes) -> tuple[dict[str, list[str]], in
                 f"{path}:{lineno}: unknown PCD header keyword {key!r} (expected one of "
                 f"{', '.join(_PCD_HEADER)})"
             )
+        if key.upper() in _PCD_ONE_VALUE and len(values) != 1:
+            raise DatasetError(
+                f"{path}:{lineno}: {key} takes one value, got {len(values)} ({line!r})"
+            )
         header[key.upper()] = values
         if key.upper() == "DATA":
             return header, pos
@@ -167,7 +172,8 @@ def read_pcd(path: str | os.PathLike) -> np.ndarray:
         first = lambda f: points[f] if points[f].ndim == 1 else points[f][:, 0]  # noqa: E731
         return _columns(path, names, first)
     if kind == "ascii":
-        return _read_pcd_ascii(path, data[offset:], dtype, names, n)
+        first_line = data[:offset].count(b"\n") + 1
+        return _read_pcd_ascii(path, data[offset:], dtype, names, n, first_line)
     if kind == "binary_compressed":
         raise DatasetError(
             f"{path}: DATA binary_compressed (LZF) is not read; convert it once with PCL, "
@@ -176,14 +182,17 @@ def read_pcd(path: str | os.PathLike) -> np.ndarray:
     raise DatasetError(f"{path}: DATA {' '.join(header['DATA'])!r}: expected ascii or binary")
 
 
-def _read_pcd_ascii(path: Path, text: bytes, dtype: np.dtype, names: list[str], n: int):
+def _read_pcd_ascii(
+    path: Path, text: bytes, dtype: np.dtype, names: list[str], n: int, first_line: int
+):
+    """``first_line``: the file's line number of the first data line, for errors."""
     width = sum(int(np.prod(dtype[f].shape, dtype=int)) for f in dtype.names)
     if n == 0 and not text.strip():
         return _columns(path, names, lambda f: np.zeros(0))
     try:
         values = np.loadtxt(io.BytesIO(text), dtype=np.float64, ndmin=2)
-    except ValueError as e:  # numpy names the row: "the number of columns changed ... row 5"
-        raise DatasetError(f"{path}: DATA ascii: {e}") from e
+    except ValueError as e:
+        raise DatasetError(_bad_ascii_row(path, text, width, first_line) or f"{path}: {e}") from e
     if values.size == 0:
         values = values.reshape(0, width)
     if values.shape != (n, width):
@@ -196,3 +205,20 @@ def _read_pcd_ascii(path: Path, text: bytes, dtype: np.dtype, names: list[str], 
         column[f] = start
         start += int(np.prod(dtype[f].shape, dtype=int))
     return _columns(path, names, lambda f: values[:, column[f]])
+
+
+def _bad_ascii_row(path: Path, text: bytes, width: int, first_line: int) -> str | None:
+    """The first data line of an ASCII PCD that is not ``width`` numbers, named by its line
+    in the file (numpy's own message counts rows of the data section, from 0 or 1)."""
+    for k, raw in enumerate(text.split(b"\n")):
+        words = raw.split(b"#")[0].split()
+        if not words:
+            continue
+        where = f"{path}:{first_line + k}"
+        if len(words) != width:
+            return f"{where}: {len(words)} values, expected {width} (FIELDS x COUNT)"
+        try:
+            [float(w) for w in words]
+        except ValueError:
+            return f"{where}: a value is not a number ({raw.decode('ascii', 'replace').strip()!r})"
+    return None

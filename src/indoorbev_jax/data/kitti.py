@@ -196,7 +196,8 @@ def _median_step(words: np.ndarray, cols: int) -> float:
     times), median distance between finite points that many apart in ``words`` read as
     ``cols`` columns (x, y, z first)."""
     n = words.size // cols
-    xyz = words[: n * cols].reshape(n, cols)[:, :3].astype(np.float64)
+    with np.errstate(invalid="ignore"):  # signalling NaNs in garbage bytes
+        xyz = words[: n * cols].reshape(n, cols)[:, :3].astype(np.float64)
     xyz = xyz[np.isfinite(xyz).all(axis=1) & (np.abs(xyz) < 1e6).all(axis=1)]
     if len(xyz) < 64:
         return np.nan
