@@ -22,7 +22,7 @@ from indoorbev_jax.data import kitti
 from indoorbev_jax.ros2 import RosUnavailable, require_rclpy
 from indoorbev_jax.ros2 import messages as M
 from indoorbev_jax.ros2.detect import OUTPUTS, Detector, speed_hint
-from indoorbev_jax.ros2.record import BagRecorder, read_bag
+from indoorbev_jax.ros2.record import BagRecorder, ensure_new, read_bag
 from indoorbev_jax.rosbag import (
     MARKER_ARRAY,
     POINTCLOUD2,
@@ -249,6 +249,19 @@ def test_recorder_round_trip_and_missing_rclpy(tmp_path, monkeypatch):
     with pytest.raises(FileExistsError, match=r"cut\.partial: left by an interrupted recording"):
         BagRecorder(tmp_path / "cut", {"/a": POINTCLOUD2}, TS, "mcap")
     assert left.read_bytes() == b"recorded" and not (tmp_path / "cut").exists()
+    # A folder that cannot be made is found before anything (a node's warm-up) starts.
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(OSError, match=r"afile/bag: cannot record here"):
+        ensure_new(tmp_path / "afile" / "bag")
+    # A writer failure (mcap refuses a negative time) is close's error, not a thread's
+    # traceback from the writer's own close.
+    hook_calls = []
+    monkeypatch.setattr(threading, "excepthook", hook_calls.append)
+    rec = BagRecorder(tmp_path / "neg", {"/a": POINTCLOUD2}, TS, "mcap")
+    rec.write("/a", -5, raw)
+    with pytest.raises(RuntimeError, match="neg: recording failed"):
+        rec.close()
+    assert hook_calls == []
     # A recorder that cannot open leaves nothing behind either.
     with pytest.raises(RuntimeError, match="recording failed"):
         BagRecorder(tmp_path / "bad", {"/a": "no_pkg/msg/NoSuchType"}, TS)
@@ -519,6 +532,25 @@ def test_silence_hint_names_the_likely_qos_cause():
     # A reliable publisher that is idle (a driver still starting): QoS is not the cause.
     idle = silence_hint(0, 2, "/livox/lidar", True, 1)
     assert idle.endswith("1 of them reliable, so QoS is not the cause: they have sent nothing yet")
+    # A publisher of another type (a Livox driver on xfer_format 1) is named, not QoS blamed.
+    for reliable in (False, True):
+        other = silence_hint(0, 0, "/livox/lidar", reliable, 0, ["livox_ros_driver2/msg/CustomMsg"])
+        assert other == (
+            "/livox/lidar: published as livox_ros_driver2/msg/CustomMsg, not "
+            "sensor_msgs/msg/PointCloud2, which is what the node reads (the Livox driver "
+            "publishes PointCloud2 with xfer_format 0)"
+        )
+    assert silence_hint(3, 0, "/livox/lidar", False, 0, ["sensor_msgs/msg/LaserScan"]) is None
+    mixed = silence_hint(0, 1, "/livox/lidar", False, 0, ["sensor_msgs/msg/LaserScan"])
+    assert "best-effort" in mixed  # a PointCloud2 publisher too: QoS is still the likely cause
+
+
+def test_bag_log_time_is_never_negative():
+    """mcap refuses a negative log time: a pre-1970 stamp ended the recording."""
+    from indoorbev_jax.ros2.detect import bag_log_ns
+
+    assert bag_log_ns(1_700_000_000_000_000_000, 5) == 1_700_000_000_000_000_000
+    assert bag_log_ns(0, 5) == 5 and bag_log_ns(-5_000_000_000, 5) == 5
 
 
 def test_console_scripts_exit_130_on_ctrl_c(monkeypatch, capsys):

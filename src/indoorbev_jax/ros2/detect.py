@@ -247,13 +247,36 @@ def check_settings(topic: str, out_ns: str, log_every: float, max_frames: int) -
     return out_topics
 
 
+def bag_log_ns(stamp: int, received: int) -> int:
+    """The log time of a cloud and its outputs in a recording: the cloud's header stamp, or,
+    for an unstamped or pre-1970 one, when it arrived (a bag's time is unsigned: mcap
+    refuses < 0, which ended the recording)."""
+    return stamp if stamp > 0 else received
+
+
 def silence_hint(
-    received: int, publishers: int, topic: str, reliable: bool, reliable_publishers=None
+    received: int,
+    publishers: int,
+    topic: str,
+    reliable: bool,
+    reliable_publishers=None,
+    other_types: list[str] | tuple[str, ...] = (),
 ) -> str | None:
-    """Why no cloud arrived although ``publishers`` publish on ``topic`` (None when some did
-    arrive, or nobody publishes: then there is nothing to explain). ``reliable_publishers``:
-    how many of them offer reliable QoS (None: unknown)."""
-    if received or not publishers:
+    """Why no cloud arrived although ``publishers`` publish PointCloud2 on ``topic`` (None
+    when some did arrive, or nobody publishes: then there is nothing to explain).
+    ``reliable_publishers``: how many of them offer reliable QoS (None: unknown);
+    ``other_types``: the message types of publishers on ``topic`` that are not PointCloud2."""
+    if received:
+        return None
+    if other_types and not publishers:
+        hint = (
+            f"{topic}: published as {', '.join(other_types)}, not {POINTCLOUD2}, which is what "
+            "the node reads"
+        )
+        if any("livox" in t.lower() for t in other_types):
+            hint += " (the Livox driver publishes PointCloud2 with xfer_format 0)"
+        return hint
+    if not publishers:
         return None
     hint = f"{topic}: {publishers} publisher(s) but no cloud arrived in {SILENCE_S:g} s; "
     if reliable and reliable_publishers:
@@ -372,12 +395,16 @@ def run_detect_node(
                         received = stats.received
                     try:
                         infos = node.get_publishers_info_by_topic(bag_names["input"])
+                        other_types = sorted({i.topic_type for i in infos} - {POINTCLOUD2})
+                        infos = [i for i in infos if i.topic_type == POINTCLOUD2]
                         publishing = len(infos)
                         offered = [getattr(i.qos_profile.reliability, "name", "") for i in infos]
                         reliable_publishers = offered.count("RELIABLE")
                     except Exception:  # noqa: BLE001 - only a hint; never stop the node
-                        publishing, reliable_publishers = 0, None
-                    hint = silence_hint(received, publishing, topic, reliable, reliable_publishers)
+                        publishing, reliable_publishers, other_types = 0, None, []
+                    hint = silence_hint(
+                        received, publishing, topic, reliable, reliable_publishers, other_types
+                    )
                     if hint:
                         log.warning(hint)
                 continue
@@ -393,9 +420,10 @@ def run_detect_node(
                 if k == "detections":
                     published = time.time_ns()
             if recorder is not None and not recording_stopped:
-                ok = recorder.write(bag_names["input"], result.stamp or received, bytes(raw))
+                log_ns = bag_log_ns(result.stamp, received)
+                ok = recorder.write(bag_names["input"], log_ns, bytes(raw))
                 for k, message in result.outputs.items():
-                    ok = ok and recorder.write(bag_names[k], result.stamp, message)
+                    ok = ok and recorder.write(bag_names[k], log_ns, message)
                 if not ok:
                     recording_stopped = True
                     log.error(f"{recorder.error}; detection goes on unrecorded")

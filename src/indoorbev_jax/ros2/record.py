@@ -15,7 +15,9 @@ STORAGES = ("sqlite3", "mcap")
 
 def ensure_new(path: str | os.PathLike) -> Path:
     """``path`` as a Path; a ``FileExistsError`` when something is there already, or when
-    ``<path>.partial`` (an interrupted recording) is: it is the user's to keep or delete."""
+    ``<path>.partial`` (an interrupted recording) is: it is the user's to keep or delete; an
+    ``OSError`` naming ``path`` when ``<path>.partial`` cannot be made (its parent folders
+    are made, as the recording would)."""
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path}: already exists; record into a new folder")
@@ -26,6 +28,11 @@ def ensure_new(path: str | os.PathLike) -> Path:
             "recording can be recovered with `mcap recover`; a killed sqlite3 one holds no "
             "message); move or delete it, or record into a new folder"
         )
+    try:  # a parent that is a file, or not writable: found now, not after a warm-up
+        partial.mkdir(parents=True)
+        partial.rmdir()
+    except OSError as e:
+        raise OSError(f"{path}: cannot record here ({e.strerror or e}: {e.filename})") from e
     return path
 
 
@@ -85,7 +92,10 @@ class BagRecorder:
         except BaseException as e:  # noqa: BLE001 - reported by close
             self._error = e
         finally:
-            writer.close()
+            try:
+                writer.close()
+            except BaseException as e:  # noqa: BLE001 - a full disk, say: reported by close
+                self._error = self._error or e
 
     def _raise(self) -> None:
         if self._error is not None:
