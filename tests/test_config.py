@@ -60,6 +60,9 @@ def test_preset_grids():
         (lambda: AugmentConfig(jitter_std=math.inf), "augment.jitter_std"),
         (lambda: AugmentConfig(scale_range=(1.0, math.inf)), "augment.scale_range"),
         (lambda: SimConfig(min_range=math.nan), "sim.min_range"),
+        # jax.random.key keeps 32 bits: 2**32 was seed 0's run again; -1 failed at step 0.
+        (lambda: TrainConfig(seed=-1), "train.seed"),
+        (lambda: TrainConfig(seed=2**32), "train.seed"),
         (lambda: SimConfig(clearance=math.nan), "sim.clearance"),
         (lambda: DataConfig(class_map=(("Desk", "Table"), ("Desk", "Chair"))), "data.class_map"),
         # Background weight 1 - alpha < 0 rewards positive background logits.

@@ -494,6 +494,40 @@ def test_a_kill_during_evaluation_redoes_it(data, tmp_path, quick_start, monkeyp
     ]
 
 
+def test_a_resumed_train_line_says_how_many_steps_it_averages(data, tmp_path, monkeypatch):
+    """Resumed from a checkpoint between two log lines, the first train line averages only
+    the steps since: its ``steps`` says so (the line looked like a full window)."""
+    cfg = dataclasses.replace(
+        CFG,
+        train=dataclasses.replace(
+            CFG.train, total_steps=8, eval_every=8, checkpoint_every=3, log_every=4
+        ),
+    )
+    kill_at = []
+
+    def fake_step(state, batch, key, hyper):  # loss = step + 1, without compiling
+        if int(state.step) in kill_at:
+            kill_at.clear()
+            raise KeyboardInterrupt
+        loss = jnp.float32(state.step + 1)
+        return state.replace(step=state.step + 1), {"loss": loss, "finite": True}
+
+    monkeypatch.setattr(T, "jit_train_step", lambda *args, **kwargs: fake_step)
+    monkeypatch.setattr(T, "evaluate", lambda *args: {"pq": 0.5, "ap": {0.5: 0.25}})
+
+    def train_lines(workdir):
+        rows = [json.loads(x) for x in (workdir / "metrics.jsonl").read_text().splitlines()]
+        return [(r["step"], r["steps"], r["loss"]) for r in rows if r["kind"] == "train"]
+
+    T.train_and_evaluate(cfg, tmp_path / "full", data=str(data), progress=False)
+    assert train_lines(tmp_path / "full") == [(4, 4, 2.5), (8, 4, 6.5)]
+    kill_at.append(3)  # after the step-3 checkpoint, before the step-4 line
+    with pytest.raises(KeyboardInterrupt):
+        T.train_and_evaluate(cfg, tmp_path / "cut", data=str(data), progress=False)
+    T.train_and_evaluate(cfg, tmp_path / "cut", data=str(data), progress=False)
+    assert train_lines(tmp_path / "cut") == [(4, 1, 4.0), (8, 4, 6.5)]
+
+
 def test_metrics_log_drops_a_torn_last_line_only(tmp_path, caplog):
     path = tmp_path / "metrics.jsonl"
     good = ['{"step": 5, "kind": "train", "loss": 2.0}', '{"step": 10, "kind": "train"}']

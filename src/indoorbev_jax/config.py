@@ -596,6 +596,9 @@ class TrainConfig:
                 _fail(f"train.{name}", f"must be finite and >= 0, got {v!r}")
         if not 0.0 <= self.ema_decay < 1.0:
             _fail("train.ema_decay", f"must lie in [0, 1) (0: off), got {self.ema_decay!r}")
+        if not 0 <= self.seed < 2**32:
+            # jax.random.key takes 32 bits here: 2**32 was seed 0 again, < 0 failed mid-run.
+            _fail("train.seed", f"must lie in [0, 2**32), got {self.seed}")
         if not 0 <= self.warmup_steps <= self.total_steps:
             _fail("train.warmup_steps", f"must lie in [0, total_steps], got {self.warmup_steps}")
 

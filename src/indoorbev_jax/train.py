@@ -1074,6 +1074,9 @@ def train_and_evaluate(
                 values = _scalars(jax.tree.map(lambda *xs: np.stack(xs), *pending))
                 values.pop("finite")
                 values["skipped_steps"] = int(state.skipped)
+                # The steps averaged: fewer than log_every in the first window after a
+                # resume from a checkpoint between two log lines.
+                values["steps"] = window_steps
                 values["steps_per_s"] = window_steps / (time.perf_counter() - window_start)
                 metrics_log.write(done, "train", values)
                 if values["skipped_steps"]:
