@@ -229,12 +229,13 @@ def export(
     Raises:
       ValueError: frames not a whole number > 0, seed not one in [0, 2**32), throttle not a
         number >= 0, an empty ``out`` or ``rosbag`` (named); ``rosbag`` names an existing
-        path that is not a bag of this export (``BagError``, a ValueError). All checked
-        before any frame.
+        path that is not a bag of this export (``BagError``, a ValueError); sim settings
+        no scene can be drawn from (``scenes.check_settings``). All checked before any
+        frame, and before export.json is written.
       ExportError: ``out`` is a file, holds an export with other settings, or dataset files
         without export.json; ``rosbag`` overlaps ``out`` or cannot be created.
     """
-    from indoorbev_sim.scenes import held_out_note
+    from indoorbev_sim.scenes import check_settings, held_out_note
     from tqdm import tqdm
 
     check_whole("frames", frames, 1)
@@ -246,6 +247,7 @@ def export(
     if rosbag is not None:  # write_bag runs last: refuse a bad target before hours of frames
         _check_bag_place(check_folder("rosbag", rosbag, ExportError), root)
         check_bag_target(rosbag, (POINTS_TOPIC, OBJECTS_TOPIC))
+    check_settings(config.sim)  # before export.json keeps settings that cannot run
     meta = {"seed": int(seed), "frames": int(frames), "config": config.stable_dict()}
     _check_meta(root, meta)  # stable_dict: an export.json of an older version still matches
     _remove_stale_temporaries(root)

@@ -226,6 +226,17 @@ def check_sensor_height(sim: SimConfig) -> None:
         )
 
 
+def check_settings(sim: SimConfig) -> None:
+    """Raises ``ValueError``, naming the field, for settings no scene can be drawn from (a
+    ceiling below the lidar, every plan or a class's every variant held out, an unknown
+    variant): what ``sample_scene`` would raise when traced, said before a run writes its
+    settings (an export.json or config.json of them would refuse the corrected rerun)."""
+    check_sensor_height(sim)
+    for split in ("train", "test"):
+        allowed_plans(sim, split)
+        allowed_variants(sim, split)
+
+
 def allowed_plans(sim: SimConfig, split: str) -> np.ndarray:
     """Plan ids a split draws from: test the held-out plans, train/val all others."""
     n = len(layouts.LAYOUTS) * sim.plans_per_layout

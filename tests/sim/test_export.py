@@ -287,6 +287,18 @@ def test_bad_options_fail_before_any_frame(cache, tmp_path):
     with pytest.raises(ValueError, match="rosbag: an empty path"):
         export_mod.export(out, 4, SEED, CFG, rosbag="", progress=False)
     assert not out.exists()
+    # Settings no scene can be drawn from are refused before export.json keeps them (it
+    # then refused the corrected rerun as "an export with other settings").
+    every_plan = {"layouts": ("office",), "plans_per_layout": 1, "test_layouts": ("office/0",)}
+    for fields, message in [
+        ({"test_variants": ("Misc/foo",)}, r"sim\.test_variants: unknown variant 'Misc/foo'"),
+        ({"sensor_height": (0.35, 2.9)}, r"sensor_height"),
+        (every_plan, r"sim\.test_layouts holds out every plan"),
+    ]:
+        bad = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, **fields))
+        with pytest.raises(ValueError, match=message):
+            export_mod.export(out, 4, SEED, bad, progress=False)
+        assert not (out / "export.json").exists()
 
 
 def test_settings_mismatch_names_each_field(exported, tmp_path):
