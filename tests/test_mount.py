@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import math
 
 import jax
 import numpy as np
@@ -223,9 +224,11 @@ def test_predict_records_the_mount_and_refuses_to_mix(model_file, tmp_path, caps
     tilted_file = P.export_model(params, tilted, tmp_path / "tilted.msgpack")
     run = ["predict", str(tilted_file), str(scan), "--no-pictures"]
     assert cli_main([*run, "--out", str(tmp_path / "t1")]) == 0
-    assert "trained on a lidar at roll 0, pitch 20, yaw 0 deg" in capsys.readouterr().err
+    assert "trained on lidars tilted 19.0 to 21.0 deg (sim.sensor_rpy 0,20,0;" in (
+        capsys.readouterr().err
+    )
     assert cli_main([*run, "--out", str(tmp_path / "t2"), "--lidar-rpy", "0,20,0"]) == 0
-    assert "trained on a lidar" not in capsys.readouterr().err
+    assert "trained on lidars" not in capsys.readouterr().err
     # A level frame with nothing to name (no --bag-out) is pointed out, not silently dropped.
     assert cli_main([*argv, "--lidar-rpy", "0,0.349,0", "--level-frame", "lvl"]) == 0
     assert "--level-frame 'lvl' names the frame of --bag-out's messages" in capsys.readouterr().err
@@ -288,9 +291,20 @@ def test_the_shipped_tilted_model_is_the_level_ones_architecture_for_pitch_0_to_
     assert (tilted.sim.sensor_rpy, tilted.sim.sensor_tilt_jitter) == ((0.0, 10.0, 0.0), 10.0)
     assert (level.sim.sensor_rpy, level.sim.sensor_tilt_jitter) == ((0.0, 0.0, 0.0), 0.0)
     for pitch in (0.0, 5.0, 15.0, 20.0):
-        assert LidarMount(pitch=pitch).notes(tilted.sim) == [], pitch
-    assert "within 10 deg of" in LidarMount(pitch=-10.0).notes(tilted.sim)[0]
+        assert LidarMount(pitch=pitch).notes(tilted) == [], pitch
+    # Trained with every scene turned about z (augment.rotation pi): a tilt facing any way is
+    # one the model saw, so a roll, a nose-up pitch and a yawed mount get no note.
+    assert tilted.train.augment and tilted.augment.rotation == math.pi
+    for rpy in [(10, 0, 0), (5, 0, 0), (0, -10, 0), (0, 15, 180), (-14, 14, 30)]:
+        assert LidarMount(*rpy).notes(tilted) == [], rpy
+    (hint,) = LidarMount(roll=25.0).notes(tilted)
+    assert "trained on lidars tilted 0.0 to 20.0 deg (sim.sensor_rpy 0,10,0, sensor_tilt_" in hint
+    assert "--lidar-rpy 25,0,0 tilts it 25.0 deg" in hint
+    # Without the full turn (or without augmentation) the direction counts, as before.
+    for config in (
+        dataclasses.replace(tilted, augment=dataclasses.replace(tilted.augment, rotation=1.0)),
+        dataclasses.replace(tilted, train=dataclasses.replace(tilted.train, augment=False)),
+    ):
+        assert "within 10 deg of" in LidarMount(pitch=-10.0).notes(config)[0]
     # The level model points a lidar tilted 5 degrees to models trained on tilts.
-    assert (
-        "(sim.sensor_tilt_jitter, docs/ROBOT.md 'Mount')" in LidarMount(pitch=5).notes(level.sim)[0]
-    )
+    assert "(sim.sensor_tilt_jitter, docs/ROBOT.md 'Mount')" in LidarMount(pitch=5).notes(level)[0]

@@ -126,26 +126,39 @@ class LidarMount:
             )
         return None
 
-    def notes(self, trained) -> list[str]:
+    def notes(self, config) -> list[str]:
         """The notes (``radians_hint``, ``tilt_hint``) that apply to this mount for a model
-        trained with ``trained`` (its ``config.sim``)."""
+        trained with ``config`` (its ``Config``)."""
+        trained = config.sim
+        every_direction = config.train.augment and config.augment.rotation >= math.pi - 1e-6
         hints = (
             self.radians_hint(),
-            self.tilt_hint(trained.sensor_rpy, trained.sensor_tilt_jitter),
+            self.tilt_hint(trained.sensor_rpy, trained.sensor_tilt_jitter, every_direction),
         )
         return [hint for hint in hints if hint]
 
+    def tilt(self) -> float:
+        """Degrees between the lidar's z axis and the level frame's (yaw does not tilt)."""
+        return math.degrees(math.acos(float(np.clip(self.rotation()[2, 2], -1.0, 1.0))))
+
     def tilt_hint(
-        self, trained_rpy: tuple[float, float, float], trained_jitter: float = 0.0
+        self,
+        trained_rpy: tuple[float, float, float],
+        trained_jitter: float = 0.0,
+        every_direction: bool = False,
     ) -> str | None:
         """A note when this mount is not the model's: one tilted further than
         ``LEVEL_TOLERANCE`` degrees for a model trained on a level lidar, or one further than
         a degree (or the jitter) from the tilt the model was trained on (``sim.sensor_rpy``,
-        or tilts within ``sim.sensor_tilt_jitter`` of it). A model knows its tilts' coverage."""
+        or tilts within ``sim.sensor_tilt_jitter`` of it). A model knows its tilts' coverage.
+
+        ``every_direction``: training turned every scene about z by up to 180 degrees
+        (``augment.rotation`` pi), which turns the direction a tilt faces as well, so only
+        the size of the tilt counts (a roll of 10 is a pitch of 10 turned by 90 degrees)."""
         trained = LidarMount(*trained_rpy)
         if not trained.rotated and not trained_jitter:
             # Yaw leaves a level lidar level: only the tilt of its z axis counts.
-            tilt = math.degrees(math.acos(float(np.clip(self.rotation()[2, 2], -1.0, 1.0))))
+            tilt = self.tilt()
             if tilt <= LEVEL_TOLERANCE:
                 return None
             return (
@@ -153,6 +166,20 @@ class LidarMount:
                 f"{self.roll:g},{self.pitch:g},{self.yaw:g} tilts it {tilt:.1f} deg: levelling "
                 "cannot show the model what the tilt hides, so expect lower scores; a model "
                 "trained on tilts does better (sim.sensor_tilt_jitter, docs/ROBOT.md 'Mount')"
+            )
+        if every_direction:
+            margin = max(1.0, trained_jitter)
+            low, high = max(0.0, trained.tilt() - margin), trained.tilt() + margin
+            if low - 1e-6 <= self.tilt() <= high + 1e-6:  # acos rounding at the ends
+                return None
+            return (
+                f"the model was trained on lidars tilted {low:.1f} to {high:.1f} deg (sim."
+                f"sensor_rpy {trained.roll:g},{trained.pitch:g},{trained.yaw:g}"
+                + (f", sensor_tilt_jitter {trained_jitter:g}" if trained_jitter else "")
+                + f"; in every direction, as augment.rotation turned the scenes) and this "
+                f"mount's --lidar-rpy {self.roll:g},{self.pitch:g},{self.yaw:g} tilts it "
+                f"{self.tilt():.1f} deg; pass your lidar's real tilt, and note the model was "
+                "scored at its trained tilts only"
             )
         turn = trained.rotation().T @ self.rotation()
         angle = math.degrees(math.acos(float(np.clip((np.trace(turn) - 1) / 2, -1.0, 1.0))))

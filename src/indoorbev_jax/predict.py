@@ -659,7 +659,7 @@ def predict(
     say = functools.partial(print, flush=True) if verbose else (lambda *a, **k: None)
     if mount != LEVEL:
         say(f"lidar mount: {mount.describe(config.sim.sensor_height)}")
-    for hint in mount.notes(config.sim):
+    for hint in mount.notes(config):
         print(f"note: {hint}", file=sys.stderr, flush=True)
     if level_frame and bag_out is None:
         print(f"note: --level-frame {level_frame!r} names the frame of --bag-out's messages; "

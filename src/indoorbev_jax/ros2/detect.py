@@ -354,7 +354,7 @@ def run_detect_node(
     if mount != LEVEL:
         print(f"indoorbev ros2 detect: lidar mount: "
               f"{mount.describe(config.sim.sensor_height)}", flush=True)  # fmt: skip
-    for hint in mount.notes(config.sim):
+    for hint in mount.notes(config):
         print(f"indoorbev ros2 detect: note: {hint}", file=sys.stderr, flush=True)
     compile_s = detector.warmup()
     hint = speed_hint(detector.inference_ms(), config.inference.views)
