@@ -62,6 +62,10 @@ def test_preset_grids():
         (lambda: SimConfig(min_range=math.nan), "sim.min_range"),
         # jax.random.key keeps 32 bits: 2**32 was seed 0's run again; -1 failed at step 0.
         (lambda: TrainConfig(seed=-1), "train.seed"),
+        # int(width x ratio) hidden units: 0 or inf failed in the model's init, a traceback.
+        (lambda: BackboneConfig(mlp_ratio=0.01), "backbone.mlp_ratio"),
+        (lambda: BackboneConfig(mlp_ratio=math.inf), "backbone.mlp_ratio"),
+        (lambda: BackboneConfig(mlp_ratio=0.0), "backbone.mlp_ratio"),
         (lambda: TrainConfig(seed=2**32), "train.seed"),
         (lambda: SimConfig(clearance=math.nan), "sim.clearance"),
         (lambda: DataConfig(class_map=(("Desk", "Table"), ("Desk", "Chair"))), "data.class_map"),

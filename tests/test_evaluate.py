@@ -92,3 +92,5 @@ def test_an_empty_ground_truth_folder_is_named(tmp_path, capsys):
     assert f"error: {label_2}: 1 of 1 frames have no prediction label file" in (
         capsys.readouterr().err
     )
+    assert main([*argv, "--set", "grid.cel=1"]) == 2  # a usage error, not the data's
+    assert "indoorbev eval: error: " in capsys.readouterr().err

@@ -258,10 +258,13 @@ def dataset_check(args: argparse.Namespace) -> int:
     try:
         config, source = dataset_config(root, args.preset, args.set)
         ds = KittiDataset(root, args.split, config)
-    except (kitti.DatasetError, ConfigError, OSError) as e:
+    except (kitti.DatasetError, OSError) as e:
         # stderr: `dataset check ROOT > report.txt` must still show it
         print(f"indoorbev dataset check: error: {e}", file=sys.stderr)
         return 1
+    except ConfigError as e:  # a bad --set or --preset: a usage error, as in train.py
+        print(f"indoorbev dataset check: error: {e}", file=sys.stderr)
+        return 2
     if len(ds) == 0:
         problems.append(f"{root}: no frames in split {args.split or 'all'}")
     warnings.extend(_unpaired_files(Path(root), ds.ids, every_frame=args.split is None))

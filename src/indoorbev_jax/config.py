@@ -338,7 +338,14 @@ class BackboneConfig:
             if s not in (1, 2):
                 _fail(f"backbone.strides[{k}]", f"must be 1 or 2, got {s}")
         _check_positive("backbone.window_size", self.window_size)
-        _check_positive("backbone.mlp_ratio", self.mlp_ratio)
+        narrowest = min(self.embed_dims, default=1)
+        if not (math.isfinite(self.mlp_ratio) and int(narrowest * self.mlp_ratio) >= 1):
+            # The MLP's hidden width is int(width x ratio): 0 units, or inf, failed in init.
+            _fail(
+                "backbone.mlp_ratio",
+                f"must be finite and give the narrowest stage (width {narrowest}) an MLP of "
+                f">= 1 unit, got {self.mlp_ratio!r}",
+            )
         for k in self.out_indices:
             if not 0 <= k < n:
                 _fail("backbone.out_indices", f"index {k} outside 0..{n - 1}")

@@ -229,10 +229,13 @@ def eval_command(args: argparse.Namespace) -> int:
                 raise IsADirectoryError(f"--json {out}: is a folder, expected a file name")
         notes: list[str] = []
         evaluator = folder_evaluator(args.gt, args.pred, config, args.split, notes)
-    except (kitti.DatasetError, ConfigError, OSError) as e:
+    except (kitti.DatasetError, OSError) as e:
         # stderr: `indoorbev eval GT PRED > metrics.txt` must still show it
         print(f"indoorbev eval: error: {e}", file=sys.stderr)
         return 1
+    except ConfigError as e:  # a bad --set or --preset: a usage error, as in train.py
+        print(f"indoorbev eval: error: {e}", file=sys.stderr)
+        return 2
     text, payload = report(evaluator, config.data.class_names)
     print(f"ground truth {args.gt}, predictions {args.pred} ({source})")
     if args.split is None:  # with a split, the other splits' predictions are expected

@@ -161,6 +161,10 @@ def test_dataset_check_cli(tmp_path, capsys):
     assert cli_main(["dataset", "check", str(tmp_path), "--preset", "tiny"]) == 1
     out = capsys.readouterr().out
     assert "000002.txt:1: expected 15 fields" in out
+    # A bad --set is a usage error (2), not "the dataset has problems" (1).
+    argv = ["dataset", "check", str(tmp_path), "--preset", "tiny", "--set", "grid.cel=1"]
+    assert cli_main(argv) == 2
+    assert "indoorbev dataset check: error: " in capsys.readouterr().err
 
 
 def test_dataset_check_names_lost_files(tmp_path, capsys):
