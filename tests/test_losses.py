@@ -189,6 +189,8 @@ def test_targets_as_a_dict_and_default_weights(batch):
     total, _ = set_loss(preds, targets, WEIGHTS)
     as_dict = {k: targets[k] for k in targets.keys() if k != "instance_ids"}
     np.testing.assert_allclose(set_loss(preds, as_dict, None)[0], total, rtol=1e-6)
+    # None is the default, as the docstring says (the argument was required).
+    np.testing.assert_allclose(set_loss(preds, as_dict)[0], total, rtol=1e-6)
     np.testing.assert_allclose(cost_matrix(preds, as_dict), cost_matrix(preds, targets))
     with pytest.raises(TypeError, match=r"targets: missing \['valid'\]"):
         set_loss(preds, {k: v for k, v in as_dict.items() if k != "valid"}, WEIGHTS)

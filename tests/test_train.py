@@ -105,6 +105,26 @@ def test_sweep_refuses_a_weight_the_config_has_not():
     assert "seed" not in T.Hyper.from_config(CFG).weights
 
 
+def test_hypers_json_keeps_the_values_given():
+    """hypers.json (and a member's exported config) held float32 round-offs: 1e-4 was
+    9.999999747378752e-05, and weights never set (0.1) 0.10000000149011612."""
+    from indoorbev_jax.sweep import hypers_to_json, same_settings
+
+    lrs = [1e-4, 4e-4, 3e-3]
+    settings = hypers_to_json(stack_hypers(CFG, lrs, {"dice": [5.0, 0.3, 2.5]}))
+    assert settings["learning_rate"] == lrs and settings["weights"]["dice"] == [5.0, 0.3, 2.5]
+    for name, values in settings["weights"].items():
+        if name != "dice":
+            assert values == [getattr(CFG.loss, f"{name}_weight")] * 3, name
+    # A hypers.json written with the full digits still resumes; other settings do not.
+    older = {"learning_rate": [float(np.float32(v)) for v in lrs],
+             "weights": {k: [float(np.float32(v)) for v in vs]
+                         for k, vs in settings["weights"].items()}}  # fmt: skip
+    assert older["learning_rate"][0] == 9.999999747378752e-05 and same_settings(older, settings)
+    assert not same_settings({**older, "learning_rate": [1e-4, 4e-4, 2e-3]}, settings)
+    assert not same_settings({"learning_rate": lrs}, settings) and not same_settings({}, settings)
+
+
 def test_params_ema_is_the_average_of_the_stepped_params(tmp_path):
     decay = 0.9
     cfg = dataclasses.replace(CFG, train=dataclasses.replace(CFG.train, ema_decay=decay))

@@ -284,7 +284,7 @@ def _check_weights(weights: dict) -> None:
 def set_loss(
     predictions: Predictions,
     targets: Targets,
-    weights: dict | LossConfig | None,
+    weights: dict | LossConfig | None = None,
     config: LossConfig = DEFAULT_CONFIG,
     *,
     key: jax.Array | None = None,

@@ -753,7 +753,8 @@ def predict(
         done = summary["frames"] - summary["resumed_frames"]
         left = total - (summary["frames"] + len(summary["bad_frames"]))
         eta = (time.perf_counter() - started) / done * left
-        return f"{count}: {len(labels)} objects, {ms:.1f} ms{note} (ETA {_eta(eta)})"
+        objects = f"{len(labels)} object" + ("" if len(labels) == 1 else "s")
+        return f"{count}: {objects}, {ms:.1f} ms{note} (ETA {_eta(eta)})"
 
     if bag_out is not None:
         from indoorbev_jax.rosbag import write_bag

@@ -130,11 +130,39 @@ def _cached_sweep_step(config: Config):
     return jit_train_step(config, jax.vmap(step, in_axes=(0, None, None, 0)))
 
 
+def _shortest(values) -> list[float]:
+    """float32 values as the shortest decimals that read back to them: the 1e-4 given, not
+    its float32 9.999999747378752e-05 (which export --member copied into a model's config)."""
+    return [float(str(v)) for v in np.asarray(values, np.float32).reshape(-1)]
+
+
 def hypers_to_json(hypers: Hyper) -> dict:
     return {
-        "learning_rate": np.asarray(hypers.learning_rate).tolist(),
-        "weights": {k: np.asarray(v).tolist() for k, v in sorted(hypers.weights.items())},
+        "learning_rate": _shortest(hypers.learning_rate),
+        "weights": {k: _shortest(v) for k, v in sorted(hypers.weights.items())},
     }
+
+
+def same_settings(saved: dict, given: dict) -> bool:
+    """Whether two ``hypers_to_json`` dicts hold the same float32 settings (an older
+    hypers.json wrote the float32 values' full float64 digits)."""
+
+    def flat(settings):
+        weights = settings.get("weights")
+        if not isinstance(weights, dict):
+            return None
+        return [("learning_rate", settings.get("learning_rate"))] + sorted(weights.items())
+
+    a, b = flat(saved), flat(given)
+    if a is None or b is None or [k for k, _ in a] != [k for k, _ in b]:
+        return False
+    try:
+        return all(
+            np.array_equal(np.asarray(x, np.float32), np.asarray(y, np.float32))
+            for (_, x), (_, y) in zip(a, b, strict=True)
+        )
+    except (TypeError, ValueError):
+        return False
 
 
 @holds_workdir
@@ -168,7 +196,7 @@ def run_sweep(
     check_run_kind(workdir, "sweep")
     if config_path.exists():
         check_resume(config_path, run_path, config, data_source, "sweep")
-    if hypers_path.exists() and json.loads(hypers_path.read_text()) != settings:
+    if hypers_path.exists() and not same_settings(json.loads(hypers_path.read_text()), settings):
         raise ValueError(
             f"{hypers_path}: the workdir holds a sweep of other settings "
             f"({json.loads(hypers_path.read_text())}, given {settings}); sweep in another workdir"
