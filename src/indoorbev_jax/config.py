@@ -84,6 +84,9 @@ def _as_type(value: Any, hint, python: bool = False) -> Any:
         if isinstance(value, numbers.Integral) and not is_bool:
             return int(value)
     elif hint is float:
+        if isinstance(value, np.floating) and value.dtype.itemsize < 8:
+            # np.float32(0.1) means 0.1, not 0.10000000149 (a grid of those is not whole).
+            return float(str(value))
         if isinstance(value, numbers.Real) and not is_bool:
             return float(value)
     elif hint is str:
