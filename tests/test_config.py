@@ -239,5 +239,7 @@ def test_python_built_sections_check_each_fields_type():
     assert TrainConfig(batch_size=np.int64(8)).batch_size == 8
     # A float32 means its shortest decimal: np.float32(0.1) gave 99.99999851 cells of 10 m.
     assert GridConfig(cell_size=np.float32(0.1)).cell_size == 0.1
-    grid = GridConfig(x_range=list(np.float32([-4.2, 4.2])), cell_size=np.float32(0.3))
+    grid = GridConfig(
+        x_range=list(np.float32([-4.2, 4.2])), y_range=(-3, 3), cell_size=np.float32(0.3)
+    )
     assert grid.x_range == (-4.2, 4.2) and grid.cell_size == 0.3
