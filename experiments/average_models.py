@@ -54,7 +54,10 @@ def main(argv=None) -> None:
         config = with_thresholds(config, args.score_threshold, args.mask_threshold, args.views)
     except (ValueError, FileNotFoundError, ConfigError) as e:
         p.error(str(e))
-    path = export_model(params, config, args.out)
+    try:
+        path = export_model(params, config, args.out)
+    except OSError as e:  # a folder, or a place that cannot be written: named, status 2
+        p.exit(2, f"average_models: {e}\n")
     count = sum(math.prod(x.shape) for x in jax.tree.leaves(params))
     lo, hi = config.sim.sensor_height
     print(f"average of {len(args.models)} models ({count:,} parameters, score threshold "

@@ -15,7 +15,7 @@ import jax
 import numpy as np
 
 from indoorbev_jax import viz
-from indoorbev_jax.cli import HelpFormatter, positive_int
+from indoorbev_jax.cli import HelpFormatter, positive_int, seed_int
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
 from indoorbev_jax.metrics import Evaluator
@@ -52,7 +52,7 @@ def main(argv=None) -> None:
     )
     p.add_argument(
         "--seed",
-        type=int,
+        type=seed_int,
         default=2026,
         help="seed of the simulated scenes (and of the untrained network's initialisation)",
     )
@@ -60,7 +60,10 @@ def main(argv=None) -> None:
     from indoorbev_sim.generate import jitted_generate
 
     if Path(args.model).exists():
-        config, params = load_model(args.model)
+        try:
+            config, params = load_model(args.model)
+        except (OSError, ValueError) as e:  # not a model file: one line, as eval_sim's
+            p.exit(2, f"demo.py: {e}\n")
         print(f"model: {args.model}")
     else:
         from indoorbev_jax.train import init_state

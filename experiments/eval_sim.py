@@ -45,11 +45,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import itertools
-import json
 import math
 import sys
 import time
-from pathlib import Path
 
 import jax
 import numpy as np
@@ -57,9 +55,12 @@ import numpy as np
 from indoorbev_jax.cli import (
     HelpFormatter,
     add_views_argument,
+    check_out_file,
     join_negative_values,
     positive_int,
     rpy_argument,
+    seed_int,
+    write_json,
 )
 from indoorbev_jax.config import ConfigError, InferenceConfig
 from indoorbev_jax.evaluate import report
@@ -240,13 +241,19 @@ def add_frame_set_arguments(p: argparse.ArgumentParser) -> None:
         help="frames simulated and run per call; the frames drawn depend on it",
     )
     seeds = f"{TEST_SEED} for test, {VAL_SEED} for val"
-    p.add_argument("--seed", type=int, default=None, help=f"root seed (default: {seeds})")
+    p.add_argument("--seed", type=seed_int, default=None, help=f"root seed (default: {seeds})")
 
 
 def check_frame_set(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Refuses (one line, status 2) ``--frames`` that ``--batch`` does not divide."""
+    """Refuses (one line, status 2) ``--frames`` that ``--batch`` does not divide, and a
+    ``--json`` path that cannot be written (found now, not after the evaluation)."""
     if args.frames % args.batch:
         p.error(f"--frames {args.frames} must be a multiple of --batch {args.batch}")
+    if args.json is not None:
+        try:
+            check_out_file("--json", args.json)
+        except (OSError, ValueError) as e:
+            p.error(str(e))
 
 
 def main(argv=None) -> None:
@@ -420,10 +427,8 @@ def main(argv=None) -> None:
                   f"{inference.mask_threshold}:\n{text}")  # fmt: skip
         payload = {"setup": setup, "sweep": [entry for _, _, entry in sweep]}
     if args.json:
-        path = Path(args.json)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(payload, indent=2) + "\n")
-        print(f"metrics written to {path}")
+        write_json(args.json, payload)
+        print(f"metrics written to {args.json}")
 
 
 if __name__ == "__main__":

@@ -76,7 +76,10 @@ def main(argv=None) -> None:
         config = with_thresholds(config, args.score_threshold, args.mask_threshold, args.views)
     except ConfigError as e:
         p.error(str(e))
-    path = export_model(params, config, args.out)
+    try:
+        path = export_model(params, config, args.out)
+    except OSError as e:  # a folder, or a place that cannot be written: named, status 2
+        p.exit(2, f"export_model: {e}\n")
     count = sum(math.prod(x.shape) for x in jax.tree.leaves(params))
     _, back = load_model(path)  # the file must read back to the same parameters
     same = jax.tree.all(jax.tree.map(lambda a, b: bool((a == b).all()), params, back))

@@ -19,7 +19,7 @@ import time
 
 import jax
 
-from indoorbev_jax.cli import HelpFormatter, positive_int
+from indoorbev_jax.cli import HelpFormatter, positive_int, seed_int
 from indoorbev_jax.config import Config, ConfigError, with_overrides
 from indoorbev_jax.train import Hyper, init_state, jit_train_step, make_train_step
 
@@ -40,7 +40,7 @@ def main(argv=None) -> None:
         help="peak learning rate, reached after a warm-up of up to 20 steps",
     )
     p.add_argument("--every", type=positive_int, default=25, help="print every N steps")
-    p.add_argument("--seed", type=int, default=0, help="seed of the batch (the init uses +1)")
+    p.add_argument("--seed", type=seed_int, default=0, help="seed of the batch (the init uses +1)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="config override, as in experiments/train.py")  # fmt: skip
     args = p.parse_args(argv)
@@ -54,7 +54,7 @@ def main(argv=None) -> None:
     try:
         config = with_overrides(config, args.set)
     except ConfigError as e:
-        raise SystemExit(f"--set: {e}") from None
+        p.error(f"--set: {e}")  # one line, status 2, as its other refusals
     config = dataclasses.replace(
         config,
         train=dataclasses.replace(

@@ -11,7 +11,8 @@ import argparse
 import json
 from pathlib import Path
 
-from indoorbev_jax.cli import HelpFormatter
+from indoorbev_jax.cli import HelpFormatter, check_out_file
+from indoorbev_jax.data import kitti
 
 PANELS = (
     ("train", "loss", "training loss"),
@@ -32,13 +33,15 @@ def read_log(run: Path) -> dict[str, list[dict]]:
             if (run / "sweep.jsonl").exists()
             else ""
         )
-        raise SystemExit(f"{path}: no such file: not a training run's workdir{sweep}")
+        raise ValueError(f"{path}: no such file: not a training run's workdir{sweep}")
     out: dict[str, list[dict]] = {"train": [], "eval": []}
     for n, line in enumerate(path.read_text().splitlines(), 1):
         try:
             row = json.loads(line)
         except json.JSONDecodeError as e:
-            raise SystemExit(f"{path}:{n}: not a JSON line ({e})") from None
+            raise ValueError(f"{path}:{n}: not a JSON line ({e})") from None
+        if not isinstance(row, dict) or not isinstance(row.get("step", 0), int | float):
+            raise ValueError(f"{path}:{n}: expected a JSON object with a numeric step")
         out.setdefault(row.get("kind", "train"), []).append(row)
     return out
 
@@ -60,8 +63,18 @@ def main(argv=None) -> None:
     p.add_argument("runs", nargs="+", type=Path, help="run directories (with metrics.jsonl)")
     p.add_argument("--out", required=True, help="picture file to write (.png)")
     args = p.parse_args(argv)
-    logs = {name: read_log(run) for name, run in zip(run_labels(args.runs), args.runs, strict=True)}
     fig, axes = plt.subplots(1, len(PANELS), figsize=(4 * len(PANELS), 3.2))
+    kinds = fig.canvas.get_supported_filetypes()
+    suffix = Path(args.out).suffix.lower().lstrip(".")
+    if suffix not in kinds:
+        p.error(f"--out {args.out}: expected a picture file name ending in one of "
+                f"{', '.join('.' + k for k in sorted(kinds))}")  # fmt: skip
+    try:  # before the logs are read: a bad path is said at once
+        check_out_file("--out", args.out)
+        runs = zip(run_labels(args.runs), args.runs, strict=True)
+        logs = {name: read_log(run) for name, run in runs}
+    except (OSError, ValueError) as e:
+        p.error(str(e))
     for ax, (kind, key, title) in zip(axes, PANELS, strict=True):
         for name, log in logs.items():
             rows = [r for r in log[kind] if r.get(key) is not None]
@@ -72,8 +85,7 @@ def main(argv=None) -> None:
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.tight_layout()
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out, dpi=100)
+    kitti.atomic_write(Path(args.out), lambda tmp: fig.savefig(tmp, dpi=100, format=suffix))
     print(f"wrote {args.out}")
 
 

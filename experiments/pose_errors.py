@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 from pathlib import Path
 
@@ -43,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_sim import add_frame_set_arguments, check_frame_set, default_seed  # noqa: E402
 
 from indoorbev_jax.boxes import fit_box, segment_boxes  # noqa: E402
-from indoorbev_jax.cli import HelpFormatter, add_views_argument  # noqa: E402
+from indoorbev_jax.cli import HelpFormatter, add_views_argument, write_json  # noqa: E402
 from indoorbev_jax.config import ConfigError  # noqa: E402
 from indoorbev_jax.geometry import box_corners, cell_centers, wrap_angle  # noqa: E402
 from indoorbev_jax.metrics import mask_intersections  # noqa: E402
@@ -243,7 +242,7 @@ def main(argv=None) -> None:
           f"{args.match_iou:g}; distances and sizes in m, angles in degrees (mod 90)")  # fmt: skip
     print(format_summary(table))
     if args.json:
-        Path(args.json).write_text(json.dumps(table, indent=1) + "\n")
+        write_json(args.json, table, indent=1)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ import jax
 import numpy as np
 from indoorbev_sim import generate
 
-from indoorbev_jax.cli import RawHelpFormatter, positive_int
+from indoorbev_jax.cli import RawHelpFormatter, positive_int, seed_int
 from indoorbev_jax.config import Config
 
 
@@ -26,7 +26,8 @@ def main(argv=None) -> dict:
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=RawHelpFormatter
     )
-    p.add_argument("--preset", default="small", help="config preset: paper, small or tiny")
+    p.add_argument("--preset", default="small", choices=("paper", "small", "tiny"),
+                   help="config preset")  # fmt: skip
     p.add_argument(
         "--frames", type=positive_int, default=256, help="frames per set, a multiple of --batch"
     )
@@ -38,7 +39,7 @@ def main(argv=None) -> dict:
     )
     p.add_argument(
         "--val-seed",
-        type=int,
+        type=seed_int,
         default=eval_sim.VAL_SEED,
         help="root seed of the val frames (the test frames keep eval_sim's TEST_SEED)",
     )

@@ -22,8 +22,12 @@ def test_plot_curves_names_the_malformed_line(tmp_path):
     (tmp_path / "metrics.jsonl").write_text(
         '{"step": 50, "kind": "train", "loss": 3.0}\n{"step": 100, "kind": "train", "loss":\n'
     )
-    with pytest.raises(SystemExit, match=r"metrics\.jsonl:2: not a JSON line"):
+    with pytest.raises(ValueError, match=r"metrics\.jsonl:2: not a JSON line"):
         plot.read_log(tmp_path)
+    for line in ("3", "[1, 2]", '{"step": "x"}'):  # an AttributeError traceback before
+        (tmp_path / "metrics.jsonl").write_text('{"step": 50, "loss": 3.0}\n' + line + "\n")
+        with pytest.raises(ValueError, match=r"metrics\.jsonl:2: expected a JSON object"):
+            plot.read_log(tmp_path)
     (tmp_path / "metrics.jsonl").write_text(
         '{"step": 50, "kind": "train", "loss": 3.0}\n{"step": 50, "kind": "eval", "pq": null}\n'
     )
@@ -421,6 +425,31 @@ def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
         ("overfit_check", ["--every", "0"], "argument --every: must be > 0, got 0"),
         ("overfit_check", ["--set", "train.augment=true"], "--set train.augment=true: the check"),
         ("eval_sim", ["--model", "m", "--intensity-factor", "-1"], "--intensity-factor: expected"),
+        # Before 2026-12-07: a --json that cannot be written failed after the evaluation;
+        # seeds past 32 bits scored seed s's frames under another name (or overflowed); a
+        # file that is not a model, an unknown preset or field, an unwritable --out were
+        # tracebacks or status 1.
+        ("eval_sim", ["--model", "m", "--json", "/proc/no/m.json"], "--json /proc/no/m.json: can"),
+        ("pose_errors", ["--model", "m", "--json", str(REPO)], f"--json {REPO}: is a folder"),
+        ("eval_sim", ["--model", "m", "--seed", str(2**32 + 5)], "argument --seed: expected a wh"),
+        ("demo", ["--seed", "-1"], "argument --seed: expected a whole number in [0, 2**32)"),
+        ("demo", ["--model", str(REPO / "pyproject.toml")], "demo.py: "),
+        ("split_pairing", ["--val-seed", str(2**63)], "argument --val-seed: expected a whole"),
+        ("split_pairing", ["--preset", "bogus"], "argument --preset: invalid choice: 'bogus'"),
+        ("overfit_check", ["--set", "nosuch.field=1"], "error: --set: "),
+        ("plot_curves", [str(REPO), "--out", "c.png"], "not a training run's workdir"),
+        ("plot_curves", [str(REPO), "--out", "c.foo"], "--out c.foo: expected a picture file"),
+        ("plot_curves", [str(REPO), "--out", "/proc/no/c.png"], "--out /proc/no/c.png: cannot"),
+        (
+            "export_model",
+            [str(REPO / "models" / "indoorbev_small.msgpack"), "--out", str(REPO)],
+            f"cannot write {REPO}: Is a directory",
+        ),  # fmt: skip
+        (
+            "average_models",
+            [str(REPO / "models" / "indoorbev_small.msgpack")] * 2 + ["--out", "/proc/no.msgpack"],
+            "cannot write /proc/no.msgpack",
+        ),  # fmt: skip
     ],
 )
 def test_scripts_refuse_arguments_they_cannot_run(script, argv, message, capsys):
@@ -553,7 +582,7 @@ def test_plot_curves_labels_runs_of_one_name_by_their_paths(tmp_path):
     assert plot.run_labels(runs) == [str(runs[0]), str(runs[1]), "tiny"]
     (tmp_path / "sw").mkdir()
     (tmp_path / "sw" / "sweep.jsonl").write_text("")
-    with pytest.raises(SystemExit, match=r"sw/metrics\.jsonl: no such file: .*a sweep's workdir"):
+    with pytest.raises(ValueError, match=r"sw/metrics\.jsonl: no such file: .*a sweep's workdir"):
         plot.read_log(tmp_path / "sw")
 
 

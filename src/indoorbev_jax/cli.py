@@ -121,6 +121,34 @@ def check_folder(name: str, path, file_error: type[Exception] = ValueError) -> P
     return path
 
 
+def check_out_file(flag: str, path) -> Path:
+    """``path``, an output file given by ``flag``, checked before a long run writes it (a
+    bad path failed after the whole evaluation, losing it): not empty, not a folder, and its
+    folder made and writable. Raises ``OSError`` / ``ValueError`` naming ``flag``."""
+    if str(path) == "":
+        raise ValueError(f"{flag}: an empty path; expected a file name")
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{flag} {path}: is a folder, expected a file name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OSError(e.errno, f"{flag} {path}: cannot make its folder ({e.strerror or e})") from e
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        raise PermissionError(f"{flag} {path}: its folder {path.parent} is not writable")
+    return path
+
+
+def write_json(path, payload, indent: int = 2) -> None:
+    """``payload`` as JSON in ``path``, atomically (``kitti.atomic_write``)."""
+    import json
+
+    from indoorbev_jax.data import kitti
+
+    text = json.dumps(payload, indent=indent) + "\n"
+    kitti.atomic_write(Path(path), lambda tmp: tmp.write_text(text))
+
+
 def check_positive(name: str, value, unit: str = "seconds") -> float:
     """``value`` if it is a finite number > 0 (not a bool), ``unit`` naming it in the message."""
     ok = isinstance(value, int | float) and not isinstance(value, bool)

@@ -98,10 +98,8 @@ def export_model(params: Any, config: Config, path: str | os.PathLike) -> Path:
         "params": jax.tree.map(np.asarray, params),
     }
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(serialization.msgpack_serialize(payload))
-    os.replace(tmp, path)
+    data = serialization.msgpack_serialize(payload)
+    kitti.atomic_write(path, lambda tmp: tmp.write_bytes(data))  # names path if it fails
     return path
 
 
