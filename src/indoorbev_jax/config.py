@@ -986,8 +986,9 @@ def add_config_arguments(parser, skip: tuple[str, ...] = ()) -> None:
         action="append",
         default=[],
         metavar="FIELD=VALUE",
-        help="override any config field, VALUE checked against its type (repeatable), e.g. "
-        "--set head.upsampler_skips=false --set augment.gt_sampling=4",
+        help="override a config field, SECTION.FIELD (any section's), VALUE checked against "
+        "its type (repeatable), e.g. --set head.upsampler_skips=false --set "
+        "augment.gt_sampling=4",
     )
 
 
