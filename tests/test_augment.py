@@ -547,3 +547,67 @@ def test_gt_sampling_pastes_nothing_when_every_target_slot_is_taken(database_256
             jax.tree.map(np.testing.assert_array_equal, out.targets, frame.targets)
             np.testing.assert_array_equal(out.point_valid, frame.point_valid)
             np.testing.assert_array_equal(out.points, frame.points)
+
+
+def test_an_empty_azimuth_bin_takes_the_nearer_neighbours_return():
+    """``_beyond_returns`` against its docstring, re-derived in numpy: 288 points give 36 bins
+    of 10 degrees, each holding the farthest return in it; an empty bin takes the nearer of
+    its two neighbours' (bin 18 between 1.5 m and 3.5 m: 1.5 m), and a bin with no return
+    in it or beside it (bin 6 of 5-7) counts as unseen, every cell beyond. The farther
+    neighbour passed every test (a mutation audit): it pasted objects behind a wall."""
+    bins = 36
+    which = np.repeat(np.arange(bins), 8)  # 8 points per bin, at the bin's middle azimuth
+    az = -np.pi + (which + 0.5) * 2 * np.pi / bins
+    r = np.where(which == 17, 1.5, 3.5)
+    valid = ~np.isin(which, [18, 5, 6, 7])
+    pts = np.column_stack([r * np.cos(az), r * np.sin(az), np.zeros_like(r), np.ones_like(r)])
+    beyond = np.asarray(aug._beyond_returns(jnp.asarray(pts, jnp.float32), jnp.asarray(valid),
+                                            GRID))  # fmt: skip
+    expected_range = np.full(bins, 3.5)
+    expected_range[[17, 18]] = 1.5  # bin 17's own return, bin 18's nearer neighbour
+    expected_range[6] = 0.0  # unseen
+    xs = GRID.x_range[0] + (np.arange(GRID.shape[1]) + 0.5) * GRID.cell_size
+    ys = GRID.y_range[0] + (np.arange(GRID.shape[0]) + 0.5) * GRID.cell_size
+    px, py = np.meshgrid(xs, ys)
+    f = (np.arctan2(py, px) + np.pi) / (2 * np.pi) * bins
+    cell_bin = np.floor(f).astype(int) % bins
+    dist = np.hypot(px, py)
+    want = dist > expected_range[cell_bin]
+    # Compared away from bin edges and returns, and not in bins 5 and 7 (one neighbour each).
+    clear = (np.abs(f - np.round(f)) > 1e-3) & (np.abs(dist - 1.5) > 0.01)
+    clear &= (np.abs(dist - 3.5) > 0.01) & ~np.isin(cell_bin, [5, 7])
+    np.testing.assert_array_equal(beyond[clear], want[clear])
+    between = clear & (cell_bin == 18) & (dist > 1.5) & (dist < 3.5)
+    assert between.sum() >= 2 and beyond[between].all()  # the case the rule is about
+    assert beyond[clear & (cell_bin == 6)].all() and (clear & (cell_bin == 6)).sum() >= 10
+
+
+def test_gt_sampling_ignores_floor_points_under_a_pose():
+    """Only scene points above floor level (the object's bottom + FLOOR_MARGIN) inside a
+    candidate's box reject it or are removed under a paste (gt_sampling docstring): a dense
+    floor at z = 0, as a real scan has, gives the same pastes as the same points lifted
+    above every object (z = 2.5), and no floor point is removed. make_frame's floor was
+    too sparse for the floor cut to matter: counting floor points passed every test (a
+    mutation audit)."""
+    frame = make_frame()
+    db = aug.build_object_database(jax.tree.map(lambda a: a[None], frame), GRID, max_points=64)
+    rng = np.random.default_rng(3)
+    n = 1000  # ~12 points per m^2 over 9 x 9 m; leaves free slots for the pasted points
+    xy = rng.uniform(-4.5, 4.5, (n, 2))
+    floor = _with_points(frame, np.c_[xy, np.zeros(n), rng.random(n)])
+    lifted = _with_points(frame, np.c_[xy, np.full(n, 2.5), rng.random(n)])
+    first = int(frame.point_valid.sum())
+    assert float(db.z.max() + db.dims[:, 2].max() / 2) < 2.5 and int(floor.point_valid.sum()) < (
+        CFG.data.max_points - 3 * 64
+    )
+    cfg = dataclasses.replace(OFF, gt_sampling=3, gt_sampling_attempts=8)
+    run = jax.jit(jax.vmap(lambda k, f: aug.gt_sampling(k, f, db, GRID, cfg), (0, None)))
+    keys = jax.random.split(jax.random.key(2), 16)
+    a, b = run(keys, floor), run(keys, lifted)
+    jax.tree.map(np.testing.assert_array_equal, a.targets, b.targets)
+    added = np.asarray(a.targets.valid).sum(1) - 3
+    assert (added >= 1).sum() >= 12, added
+    assert np.asarray(a.point_valid)[:, first : first + n].all()  # the floor stays
+    np.testing.assert_array_equal(np.asarray(a.points)[:, first : first + n],
+                                  np.broadcast_to(np.asarray(floor.points)[first : first + n],
+                                                  (16, n, 4)))  # fmt: skip

@@ -174,3 +174,43 @@ def test_mask_threshold_at_the_ends_of_its_range(mask_threshold):
     np.testing.assert_array_equal(out.instance_classes, classes)
     np.testing.assert_allclose(out.det_scores, scores, rtol=1e-5, atol=1e-7)
     assert (ids > 0).any() == (mask_threshold == 0.0)
+
+
+def test_thresholds_are_inclusive_at_equality():
+    """A query whose class probability equals score_threshold is kept and a cell whose mask
+    probability equals mask_threshold is in the mask (">=", module docstring, DESIGN 9).
+    With K = 2 equal logits p_fg is exactly 0.5 and mask logit 0 gives exactly 0.5, so
+    the case is exact in float32; ">" at either threshold passed every test (a mutation
+    audit)."""
+    logits = np.zeros((1, 1, 2), np.float32)  # one foreground class and background
+    masks = np.zeros((1, 1, 2, 3), np.float32)
+    cfg = InferenceConfig(score_threshold=0.5, mask_threshold=0.5, overlap_threshold=0.8)
+    out = jax.tree.map(np.asarray, panoptic_inference_from_logits(logits, masks, cfg))
+    np.testing.assert_array_equal(out.det_masks, np.ones(masks.shape, bool))
+    np.testing.assert_array_equal(out.det_valid, [[True]])
+    np.testing.assert_array_equal(out.det_scores, [[0.25]])  # 0.5 * mean(0.5)
+    np.testing.assert_array_equal(out.segment_valid, [[True]])
+    np.testing.assert_array_equal(out.instance_ids, np.ones((1, 2, 3), np.int32))
+    np.testing.assert_array_equal(out.instance_classes, [[1, 0]])
+
+
+def test_cells_whose_probability_underflows_stay_in_the_mask_at_threshold_0():
+    """At mask_threshold 0 every cell is in the mask (probability >= 0), also where
+    sigmoid(logit) underflows to 0 in float32 (logit -200): the floor ``_TINY`` keeps those
+    cells. The other test of threshold 0 used logits that never underflow, and dropping
+    the floor passed it (a mutation audit)."""
+    logits = np.full((1, 2, K), -20.0, np.float32)
+    logits[0, :, 4] = 5.0
+    masks = np.full((1, 2, 4, 5), -200.0, np.float32)
+    masks[0, 0, :2] = 2.0  # query 0: half its cells confident, half underflowing
+    assert (np.asarray(jax.nn.sigmoid(masks[0, 1])) == 0).all()  # underflows in float32
+    cfg = InferenceConfig(score_threshold=0.5, mask_threshold=0.0, overlap_threshold=0.0)
+    out = jax.tree.map(np.asarray, panoptic_inference_from_logits(logits, masks, cfg))
+    ids, classes, scores = reference(logits, masks, cfg)
+    np.testing.assert_array_equal(out.det_masks, np.ones(masks.shape, bool))
+    np.testing.assert_array_equal(out.det_valid, [[True, True]])
+    # Query 0 wins every cell (its score there is larger); query 1 keeps none.
+    np.testing.assert_array_equal(ids, np.ones((1, 4, 5)))
+    np.testing.assert_array_equal(out.instance_ids, ids)
+    np.testing.assert_array_equal(out.instance_classes, classes)
+    np.testing.assert_allclose(out.det_scores, scores, rtol=1e-5, atol=1e-7)

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from indoorbev_jax import predict as P
-from indoorbev_jax.config import VIEWS, Config, InferenceConfig
+from indoorbev_jax.config import VIEWS, Config, GridConfig, InferenceConfig
 from indoorbev_jax.data import kitti
 from indoorbev_jax.ros2 import RosUnavailable, require_rclpy
 from indoorbev_jax.ros2 import messages as M
@@ -93,6 +93,61 @@ def test_detection_messages_round_trip():
     assert (strip.points[0].x, strip.points[0].y) == (strip.points[4].x, strip.points[4].y)
     assert strip.points[0].z == pytest.approx(0.0)  # the floor under the box
     assert markers[2].text == "Chair 0.90" and markers[4].text == "Person 0.25"
+
+
+def test_detections_read_with_their_declared_fields():
+    """A ROS client (``sensor_msgs_py.point_cloud2.read_points``, docs/ROBOT.md) reads each
+    field at its declared offset with its declared datatype, not with our own dtype as
+    ``detections_to_labels`` does: decoding with a numpy dtype built from ``msg.fields``
+    alone must give back the labels, and the row must be ``point_step * width`` long."""
+    labels = kitti.ObjectLabels(
+        classes=[1, 6], dims=[[2.0, 1.0, 0.8], [0.5, 0.5, 1.7]], pos=[[1.0, 2.0, 0.4],
+        [-1.0, 0.5, 0.85]], yaw=[math.pi / 2, 0.3], occlusion=[0, 0], scores=[0.9, 0.25],
+    )  # fmt: skip
+    raw = TS.serialize_cdr(M.detections_msg(TS, labels, 123, "base"), POINTCLOUD2)
+    msg = TS.deserialize_cdr(raw, POINTCLOUD2)
+    # sensor_msgs/PointField datatype constants: INT32 = 5, FLOAT32 = 7.
+    formats = {5: "<i4", 7: "<f4"}
+    assert not msg.is_bigendian and msg.height == 1
+    assert msg.row_step == msg.point_step * msg.width == len(msg.data)
+    dt = np.dtype({
+        "names": [f.name for f in msg.fields],
+        "formats": [formats[f.datatype] for f in msg.fields],
+        "offsets": [f.offset for f in msg.fields],
+        "itemsize": msg.point_step,
+    })  # fmt: skip
+    assert all(f.count == 1 for f in msg.fields)
+    assert dt.fields["class_id"][0] == np.dtype("<i4")
+    rows = np.frombuffer(bytes(msg.data), dt, count=msg.width)
+    np.testing.assert_array_equal(rows["class_id"], [1, 6])
+    np.testing.assert_array_equal(np.stack([rows[n] for n in "xyz"], 1), np.float32(labels.pos))
+    dims = np.stack([rows[n] for n in ("length", "width", "height")], 1)
+    np.testing.assert_array_equal(dims, np.float32(labels.dims))
+    np.testing.assert_array_equal(rows["yaw"], np.float32(labels.yaw))
+    np.testing.assert_array_equal(rows["score"], np.float32(labels.scores))
+
+
+def test_occupancy_grid_on_a_rectangular_off_centre_grid():
+    """On a non-square grid that starts at the sensor (a forward-looking grid, allowed by
+    DESIGN 2), width must count the x cells, height the y cells and the origin must be the
+    (x_range[0], y_range[0]) corner: a ROS client then finds an occupied cell at the
+    grid's own cell centre (GridConfig docstring). A square grid centred on the sensor
+    cannot tell x from y."""
+    grid = GridConfig(x_range=(0.0, 4.0), y_range=(-1.0, 1.0), cell_size=0.5)
+    assert grid.shape == (4, 8)
+    occupied = np.zeros(grid.shape, bool)
+    occupied[1, 6] = True  # centre (0 + 6.5 * 0.5, -1 + 1.5 * 0.5) = (3.25, -0.25)
+    msg = M.occupancy_msg(TS, occupied, grid, 42, "base")
+    info = msg.info
+    assert (info.width, info.height, info.resolution) == (8, 4, 0.5)
+    assert (info.origin.position.x, info.origin.position.y) == (0.0, -1.0)
+    (k,) = np.flatnonzero(msg.data)
+    r, c = divmod(int(k), info.width)
+    centre = (
+        info.origin.position.x + (c + 0.5) * info.resolution,
+        info.origin.position.y + (r + 0.5) * info.resolution,
+    )
+    assert centre == (3.25, -0.25)
 
 
 def test_occupancy_grid_layout():

@@ -360,3 +360,98 @@ def test_class_counts_span_zero_to_the_full_share_of_slots(kind):
     got = [int(layouts.class_counts(np.full(objects.NUM_CLASSES, v, np.float32), kind, slots)
                [objects.CLASS_INDEX["Chair"]]) for v in u]  # fmt: skip
     assert got == list(range(t + 1))
+
+
+def test_max_scene_objects_caps_the_objects_placed():
+    """No scene places more than min(sim.max_scene_objects, data.max_objects) objects, and
+    with a cap below what the layouts ask for the cap is reached (``placed <= cap`` put one
+    object too many in a scene, passing every test; a mutation audit)."""
+    sim = dataclasses.replace(CFG.sim, max_scene_objects=3)
+    cap = min(sim.max_scene_objects, CFG.data.max_objects)
+    assert cap == 3
+    scene = generate.sample_scenes(jax.random.key(0), dataclasses.replace(CFG, sim=sim), 16)
+    placed = np.asarray(scene.on).sum(-1)
+    assert placed.max() == cap, placed
+
+
+def test_a_lidar_within_min_range_of_the_ceiling_is_refused():
+    """``check_sensor_height`` keeps the lidar ``sim.min_range`` below the lowest ceiling
+    (its docstring): a height between the ceiling less min_range and the ceiling itself is
+    refused, one just below that margin is accepted (only heights above the ceiling were
+    tested; the margin dropped passed; a mutation audit)."""
+    lowest = min(layouts.LAYOUTS[layouts.LAYOUT_INDEX[k]].ceiling[0] for k in CFG.sim.layouts)
+    assert lowest == 2.5  # corridors
+    m = CFG.sim.min_range
+    near = round(lowest - m / 2, 6)
+    with pytest.raises(ValueError, match=f"sim.sensor_height: up to {near} m reaches the ceiling"):
+        scenes.check_sensor_height(dataclasses.replace(CFG.sim, sensor_height=(near, near)))
+    ok = round(lowest - 1.5 * m, 6)
+    scenes.check_sensor_height(dataclasses.replace(CFG.sim, sensor_height=(ok, ok)))
+
+
+def _all_rooms(per):
+    """Every plan's Room (numpy), plans_per_layout = per, and each plan's LayoutKind."""
+    pids = np.arange(len(layouts.LAYOUTS) * per)
+    rooms = jax.tree.map(np.asarray, jax.vmap(lambda p: layouts.make_room(p, per))(pids))
+    return rooms, [layouts.LAYOUTS[p // per] for p in pids]
+
+
+def test_walls_close_the_room_around_its_door_gaps():
+    """The 8 wall boxes of every plan cover exactly the ring of thickness WALL_THICKNESS
+    around the interior (size_x x size_y, centred on the origin; the module docstring),
+    corners included, less each wall's door gap [door_lo, door_hi]; floor to ceiling. A wall
+    moved into the room or corners left open (a mutation audit) passed every test."""
+    rooms, _ = _all_rooms(8)
+    th = layouts.WALL_THICKNESS
+    checked_doors = 0
+    for i in range(len(rooms.plan)):
+        room = jax.tree.map(lambda a, i=i: a[i], rooms)
+        centre, half = map(np.asarray, layouts.wall_boxes(room))
+        hx, hy = np.float64(room.size) / 2
+        ring = shapely.box(-hx - th, -hy - th, hx + th, hy + th) - shapely.box(-hx, -hy, hx, hy)
+        lo, hi = np.float64(room.door_lo), np.float64(room.door_hi)
+        doors = [
+            shapely.box(lo[0], -hy - th, hi[0], -hy),  # wall 0: -y
+            shapely.box(lo[1], hy, hi[1], hy + th),  # wall 1: +y
+            shapely.box(-hx - th, lo[2], -hx, hi[2]),  # wall 2: -x
+            shapely.box(hx, lo[3], hx + th, hi[3]),  # wall 3: +x
+        ]
+        want = ring.difference(shapely.union_all([d for d in doors if d.area > 0]))
+        boxes = [shapely.box(*(c[:2] - h[:2]), *(c[:2] + h[:2]))
+                 for c, h in zip(centre.astype(np.float64), half.astype(np.float64), strict=True)
+                 if (h[:2] > 0).all()]  # fmt: skip
+        got = shapely.union_all(boxes)
+        assert want.symmetric_difference(got).area < 1e-4, (i, want.symmetric_difference(got))
+        np.testing.assert_allclose(centre[:, 2] - half[:, 2], 0.0, atol=1e-6)
+        np.testing.assert_allclose(centre[:, 2] + half[:, 2], room.ceiling, rtol=1e-6)
+        checked_doors += (hi > lo).sum()
+    assert checked_doors > 0
+
+
+def test_door_gaps_lie_inside_their_walls_and_follow_door_prob():
+    """A door gap [door_lo, door_hi] keeps at least 0.3 m of wall at each end (make_room
+    draws its centre so), and the share of walls with a door is the kind's ``door_prob``
+    (64 plans of each kind: 256 walls, binomial sd <= 0.032). Gaps running past the wall's
+    end and the door test inverted (a mutation audit) passed every test."""
+    rooms, kinds = _all_rooms(64)
+    wall_len = rooms.size[:, [0, 0, 1, 1]]
+    door = rooms.door_hi > rooms.door_lo
+    assert ((rooms.door_lo == 0) & (rooms.door_hi == 0))[~door].all()
+    end = np.maximum(np.abs(rooms.door_lo), np.abs(rooms.door_hi))
+    assert (end[door] <= wall_len[door] / 2 - 0.3 + 1e-5).all()
+    for kind in layouts.LAYOUTS:
+        share = door[[i for i, kd in enumerate(kinds) if kd is kind]].mean()
+        assert abs(share - kind.door_prob) < 0.15, (kind.name, share, kind.door_prob)
+
+
+def test_room_size_x_and_y_are_independent_draws():
+    """Each plan's size_x and size_y are drawn independently in their ranges: over 256
+    plans their normalised positions in the ranges are uncorrelated and never equal (one
+    draw for both, a mutation audit, passed the range tests)."""
+    rooms, kinds = _all_rooms(64)
+    fx = np.array([(s[0] - k.size_x[0]) / (k.size_x[1] - k.size_x[0])
+                   for s, k in zip(rooms.size, kinds, strict=True)])  # fmt: skip
+    fy = np.array([(s[1] - k.size_y[0]) / (k.size_y[1] - k.size_y[0])
+                   for s, k in zip(rooms.size, kinds, strict=True)])  # fmt: skip
+    assert not np.isclose(fx, fy, atol=1e-5).any()
+    assert abs(np.corrcoef(fx, fy)[0, 1]) < 0.3
