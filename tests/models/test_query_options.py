@@ -69,6 +69,23 @@ def test_peak_cells_fill_up_with_non_peaks_when_there_are_few_peaks():
     assert len(set(cells.tolist())) == 5
 
 
+def test_peak_cells_rank_every_peak_first_on_logits():
+    """The seed head gives logits: a strong object's ring (6.16) was ranked above weaker
+    objects' peaks (3.34), which a fixed offset of 2 below the peaks cannot order, so every
+    query started on one object. Peaks come first, best first, whatever the range."""
+    score = np.full((1, 12, 12), -4.6, np.float32)  # the seed head's initial bias
+    score[0, 2:5, 2:5] = 6.16  # the strong object's ring...
+    score[0, 3, 3] = 6.40  # ...around its peak
+    weak = [(2, 9), (9, 2), (9, 9)]
+    for r, c in weak:
+        score[0, r, c] = 3.34
+    cells = np.asarray(peak_cells(jnp.asarray(score), 4))[0]
+    assert cells[0] == 3 * 12 + 3 and sorted(cells[1:]) == sorted(r * 12 + c for r, c in weak)
+    # Probabilities pick the same cells: the order depends on the scores' ranking only.
+    probs = np.asarray(peak_cells(jax.nn.sigmoid(jnp.asarray(score)), 4))[0]
+    np.testing.assert_array_equal(np.sort(probs), np.sort(cells))
+
+
 def test_select_queries_start_at_their_cells_and_sow_the_seeds(feats):
     head = _head(query_init="select")
     params = head.init(jax.random.key(3), feats)

@@ -316,7 +316,7 @@ def peak_cells(score: jax.Array, k: int) -> jax.Array:
     """The k best local peaks of a score map, best first.
 
     Args:
-      score: [B, H, W] scores in [0, 1] (probabilities).
+      score: [B, H, W] finite scores of any range (the seed head's logits).
       k: cells to pick, at most H * W.
 
     Returns:
@@ -326,7 +326,11 @@ def peak_cells(score: jax.Array, k: int) -> jax.Array:
     """
     b, h, w = score.shape
     peak = jax.lax.reduce_window(score, -jnp.inf, jax.lax.max, (1, 3, 3), (1, 1, 1), "SAME")
-    rank = jnp.where(score >= peak, score, score - 2.0).reshape(b, h * w)  # peaks in [0, 1]
+    # Non-peaks drop below every peak of their map, whatever the scores' range (a fixed
+    # offset of 2 assumed probabilities; logits put a strong object's ring before weaker
+    # objects' peaks, and every query on one object).
+    span = score.max(axis=(1, 2), keepdims=True) - score.min(axis=(1, 2), keepdims=True) + 1.0
+    rank = jnp.where(score >= peak, score, score - span).reshape(b, h * w)
     return jax.lax.top_k(rank, k)[1]
 
 
