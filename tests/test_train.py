@@ -514,6 +514,19 @@ def test_a_kill_during_evaluation_redoes_it(data, tmp_path, quick_start, monkeyp
     ]
 
 
+def test_a_seed_past_32_bits_is_refused_before_anything_is_written(data, tmp_path):
+    """-1 failed at step 0 after config.json kept it; 2**32 trained seed 0's run again."""
+    from indoorbev_jax import sweep
+
+    for seed in (-1, 2**32):
+        bad = dataclasses.replace(CFG, train=dataclasses.replace(CFG.train, seed=seed))
+        with pytest.raises(ValueError, match=r"'train\.seed': must lie in \[0, 2\*\*32\)"):
+            T.train_and_evaluate(bad, tmp_path / "run", data=str(data), progress=False)
+        with pytest.raises(ValueError, match=r"'train\.seed': must lie in \[0, 2\*\*32\)"):
+            sweep.run_sweep(bad, tmp_path / "sw", stack_hypers(bad, [1e-3], {}), str(data))
+    assert not list(tmp_path.glob("*/*.json"))  # no config.json, run.json or hypers.json
+
+
 def test_a_resumed_train_line_says_how_many_steps_it_averages(data, tmp_path, monkeypatch):
     """Resumed from a checkpoint between two log lines, the first train line averages only
     the steps since: its ``steps`` says so (the line looked like a full window)."""
@@ -879,8 +892,17 @@ def test_sweep_resumes_exactly(data, tmp_path):
     assert sorted(p.name for p in (tmp_path / "ref").iterdir()) == listing
     want = jax.tree.map(lambda x: x[1], T.eval_params(ref))
     jax.tree.map(np.testing.assert_array_equal, params, want)
-    assert config.train.learning_rate == pytest.approx(3e-3, rel=1e-6)  # float32 in hypers
-    assert config.loss.dice_weight == 2.0
+    assert config.train.learning_rate == 3e-3 and config.loss.dice_weight == 2.0
+    # A hypers.json of an older version held the float32 values' full digits; the member's
+    # config still gets the values given (it had 0.003000000026077032).
+    saved = json.loads((tmp_path / "ref" / "hypers.json").read_text())
+    widen = lambda vs: [float(np.float32(v)) for v in vs]  # noqa: E731
+    older = {"learning_rate": widen(saved["learning_rate"]),
+             "weights": {k: widen(v) for k, v in saved["weights"].items()}}  # fmt: skip
+    assert older["learning_rate"][1] == 0.003000000026077032
+    (tmp_path / "ref" / "hypers.json").write_text(json.dumps(older))
+    config, _ = sweep.load_member(tmp_path / "ref", 1)
+    assert config.train.learning_rate == 3e-3 and config.loss.yaw_weight == CFG.loss.yaw_weight
     assert (config.backbone, config.head, config.grid) == (cfg.backbone, cfg.head, cfg.grid)
     with pytest.raises(ValueError, match=r"--member 2: the sweep in .* has members 0\.\.1"):
         sweep.load_member(tmp_path / "ref", 2)

@@ -133,7 +133,11 @@ def check_out_file(flag: str, path) -> Path:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise OSError(e.errno, f"{flag} {path}: cannot make its folder ({e.strerror or e})") from e
+        from indoorbev_jax.data.kitti import file_in_path
+
+        blocker = file_in_path(path.parent)
+        reason = f"{blocker} is a file" if blocker is not None else (e.strerror or str(e))
+        raise OSError(e.errno, f"{flag} {path}: cannot make its folder ({reason})") from e
     if not os.access(path.parent, os.W_OK | os.X_OK):
         raise PermissionError(f"{flag} {path}: its folder {path.parent} is not writable")
     return path

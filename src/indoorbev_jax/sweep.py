@@ -21,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from indoorbev_jax.augment import ObjectDatabase
-from indoorbev_jax.config import Config
+from indoorbev_jax.config import Config, check_train_seed
 from indoorbev_jax.train import (
     GT_DATABASE_BATCHES,
     KEY_INIT,
@@ -105,10 +105,15 @@ def load_member(workdir, member: int) -> tuple[Config, Any]:
     if state is None:
         raise FileNotFoundError(f"{workdir}: no checkpoint found")
     params = jax.tree.map(lambda x: x[member], eval_params(state))
-    loss = {f"{name}_weight": values[member] for name, values in settings["weights"].items()}
+    # _shortest: a hypers.json of an older version holds the float32 values' full digits.
+    loss = {
+        f"{name}_weight": _shortest(values[member])[0]
+        for name, values in settings["weights"].items()
+    }
+    learning_rate = _shortest(settings["learning_rate"][member])[0]
     config = dataclasses.replace(
         config,
-        train=dataclasses.replace(config.train, learning_rate=settings["learning_rate"][member]),
+        train=dataclasses.replace(config.train, learning_rate=learning_rate),
         loss=dataclasses.replace(config.loss, **loss),
     )
     return config, params
@@ -185,6 +190,7 @@ def run_sweep(
     a workdir holding another sweep (config, data, its train.txt or hypers) or a training
     run is refused, naming what differs.
     """
+    check_train_seed(config.train)
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     t = config.train

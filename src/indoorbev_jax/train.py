@@ -42,7 +42,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from indoorbev_jax.augment import ObjectDatabase, augment_batch, build_object_database
-from indoorbev_jax.config import Config, config_diff
+from indoorbev_jax.config import Config, check_train_seed, config_diff
 from indoorbev_jax.data import kitti
 from indoorbev_jax.data.rasterize import rasterize_boxes
 from indoorbev_jax.losses import seed_loss, set_loss
@@ -1006,6 +1006,7 @@ def train_and_evaluate(
     """
     from tqdm import tqdm
 
+    check_train_seed(config.train)
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     # Every check runs before config.json is written, so a refused start leaves nothing

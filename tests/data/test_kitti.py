@@ -239,6 +239,10 @@ def test_a_failed_write_names_the_file_and_leaves_nothing(tmp_path):
     with pytest.raises(OSError, match=r"cannot write .*000000\.bin: No space left on device"):
         kitti.atomic_write(target, full)
     assert list(target.parent.iterdir()) == []
+    # A file where a folder must be: named as such (it said only "File exists").
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(OSError, match=r"cannot write .*afile/x/a\.bin: .*afile is a file, not"):
+        kitti.atomic_write(tmp_path / "afile" / "x" / "a.bin", full)
 
 
 def test_split_files_from_other_editors(tmp_path):

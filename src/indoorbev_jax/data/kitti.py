@@ -107,6 +107,15 @@ def _umask() -> int:
 _FILE_MODE = 0o666 & ~_umask()
 
 
+def file_in_path(folder: Path) -> Path | None:
+    """The first of ``folder`` and its parents that is a file (a folder cannot be made
+    under it), or None."""
+    for part in (*reversed(Path(folder).parents), Path(folder)):
+        if part.is_file():
+            return part
+    return None
+
+
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """Calls ``write(tmp)`` on a temporary file beside ``path``, then renames it into place,
     so that ``path`` is either absent, the old file or the whole new one. The file gets the
@@ -131,8 +140,11 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
         # Name the file and the reason: a full disk under ndarray.tofile said only "6464
-        # requested and 1024 written".
-        raise OSError(e.errno, f"cannot write {path}: {e.strerror or e}") from e
+        # requested and 1024 written"; a file where a folder must be said "File exists".
+        reason = e.strerror or str(e)
+        if (blocker := file_in_path(path.parent)) is not None:
+            reason = f"{blocker} is a file, not a folder"
+        raise OSError(e.errno, f"cannot write {path}: {reason}") from e
     except BaseException:
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
