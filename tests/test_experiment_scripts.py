@@ -431,6 +431,11 @@ def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
         # tracebacks or status 1.
         ("eval_sim", ["--model", "m", "--json", "/proc/no/m.json"], "--json /proc/no/m.json: can"),
         ("pose_errors", ["--model", "m", "--json", str(REPO)], f"--json {REPO}: is a folder"),
+        (
+            "eval_sim",
+            ["--model", "m", "--json", str(REPO / "pyproject.toml" / "m.json")],
+            f"cannot make its folder ({REPO / 'pyproject.toml'} is a file)",
+        ),  # fmt: skip
         ("eval_sim", ["--model", "m", "--seed", str(2**32 + 5)], "argument --seed: expected a wh"),
         ("demo", ["--seed", "-1"], "argument --seed: expected a whole number in [0, 2**32)"),
         ("demo", ["--model", str(REPO / "pyproject.toml")], "demo.py: "),
