@@ -243,6 +243,8 @@ def _file_frames(paths: list[Path]) -> Iterator[Frame]:
             yield Frame(path.stem, read_cloud(path))
         except (ValueError, OSError) as e:  # DatasetError, or an unreadable file
             yield Frame(path.stem, None, error=e)
+        except MemoryError:  # the machine's trouble, not the file's
+            raise
         except Exception as e:  # a damage no check foresaw: still one bad frame, named
             error = kitti.DatasetError(f"{path}: unreadable ({type(e).__name__}: {e})")
             yield Frame(path.stem, None, error=error)
