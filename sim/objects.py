@@ -435,7 +435,7 @@ def object_bank(per_variant: int = 256, seed: int = 0) -> Prims:
 
     Returns:
       ``Prims`` of numpy arrays with leading axes [NUM_CLASSES, V, K] (V the most variants
-      of any class; missing variants repeat the class's first).
+      of any class; missing variants repeat the class's last; scenes never draw them).
     """
     rng = np.random.default_rng(seed)
     vmax = max(len(c.variants) for c in CLASSES)
