@@ -71,13 +71,18 @@ def _decode(result):
     return {k: TS.deserialize_cdr(result.outputs[k], OUTPUTS[k]) for k in OUTPUTS}
 
 
-def test_detection_messages_round_trip():
+def _two_detections():
+    """(labels, the detections message of them, as a subscriber receives it)."""
     labels = kitti.ObjectLabels(
         classes=[1, 6], dims=[[2.0, 1.0, 0.8], [0.5, 0.5, 1.7]], pos=[[1.0, 2.0, 0.4],
         [-1.0, 0.5, 0.85]], yaw=[math.pi / 2, 0.3], occlusion=[0, 0], scores=[0.9, 0.25],
     )  # fmt: skip
     raw = TS.serialize_cdr(M.detections_msg(TS, labels, 123, "base"), POINTCLOUD2)
-    msg = TS.deserialize_cdr(raw, POINTCLOUD2)
+    return labels, TS.deserialize_cdr(raw, POINTCLOUD2)
+
+
+def test_detection_messages_round_trip():
+    labels, msg = _two_detections()
     assert (msg.header.frame_id, M.stamp_ns(msg), msg.width) == ("base", 123, 2)
     back = M.detections_to_labels(msg)
     for name in ("classes", "dims", "pos", "yaw", "scores"):
@@ -100,12 +105,7 @@ def test_detections_read_with_their_declared_fields():
     field at its declared offset with its declared datatype, not with our own dtype as
     ``detections_to_labels`` does: decoding with a numpy dtype built from ``msg.fields``
     alone must give back the labels, and the row must be ``point_step * width`` long."""
-    labels = kitti.ObjectLabels(
-        classes=[1, 6], dims=[[2.0, 1.0, 0.8], [0.5, 0.5, 1.7]], pos=[[1.0, 2.0, 0.4],
-        [-1.0, 0.5, 0.85]], yaw=[math.pi / 2, 0.3], occlusion=[0, 0], scores=[0.9, 0.25],
-    )  # fmt: skip
-    raw = TS.serialize_cdr(M.detections_msg(TS, labels, 123, "base"), POINTCLOUD2)
-    msg = TS.deserialize_cdr(raw, POINTCLOUD2)
+    labels, msg = _two_detections()
     # sensor_msgs/PointField datatype constants: INT32 = 5, FLOAT32 = 7.
     formats = {5: "<i4", 7: "<f4"}
     assert not msg.is_bigendian and msg.height == 1
