@@ -125,7 +125,9 @@ def test_bad_mounts_are_named():
     with pytest.raises(ValueError, match="lidar mount pitch"):
         LidarMount(pitch=float("nan"))
     assert parse_rpy("0,-20.5,90") == (0.0, -20.5, 90.0)
-    for bad in ("1,2", "a,b,c", "1,2,inf"):
+    # Exactly three: a fourth value (a height typed into --lidar-rpy) would reach
+    # LidarMount(*rpy, height=...) as a height given twice, or LidarMount(*rpy) as the height.
+    for bad in ("1,2", "a,b,c", "1,2,inf", "0,20,0,1.2"):
         with pytest.raises(ValueError, match="expected ROLL,PITCH,YAW"):
             parse_rpy(bad)
 

@@ -71,6 +71,20 @@ def test_write_bag_clears_only_its_own_leftovers(tmp_path):
     assert write_bag(bag, [frame, frame], CFG.data.class_names, "/points", "/objects") == 2
 
 
+def test_a_bag_folder_holding_another_file_is_never_replaced(tmp_path):
+    """``check_bag_target`` replaces only a bag on the same topics with nothing else in its
+    folder: a user's file put into a bag written before must stop the rewrite, not be deleted."""
+    from indoorbev_jax.rosbag import write_bag
+
+    frame = (10**9, "lidar", np.zeros((3, 4), np.float32), kitti.ObjectLabels.empty())
+    bag = tmp_path / "out_bag"
+    assert write_bag(bag, [frame], CFG.data.class_names, "/points", "/objects") == 1
+    (bag / "notes.txt").write_text("mine")
+    with pytest.raises(BagError, match=r"out_bag: exists .* it also holds \['notes\.txt'\]"):
+        write_bag(bag, [frame, frame], CFG.data.class_names, "/points", "/objects")
+    assert (bag / "notes.txt").read_text() == "mine"
+
+
 def test_a_failed_bag_write_names_the_bag(tmp_path, monkeypatch):
     """sqlite3's "database or disk is full" named no file and was no OSError: a traceback."""
     import sqlite3
@@ -133,6 +147,16 @@ def test_pointcloud2_any_layout():
     d3 = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
     got = pointcloud2_to_points(_cloud(["x", "y", "z"], d3, src))
     np.testing.assert_array_equal(got[:, 3], 0)
+    # Ouster/Livox drivers name intensity "reflectivity"; with both fields, "intensity" wins.
+    src["reflectivity"] = rng.integers(0, 255, n)
+    d5 = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("reflectivity", "<u2")])
+    got = pointcloud2_to_points(_cloud(["x", "y", "z", "reflectivity"], d5, src))
+    np.testing.assert_array_equal(got[:, :3], expected[:, :3])
+    np.testing.assert_array_equal(got[:, 3], src["reflectivity"])
+    d6 = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("reflectivity", "<u2"),
+                   ("intensity", "<f4")])  # fmt: skip
+    got = pointcloud2_to_points(_cloud(["x", "y", "z", "reflectivity", "intensity"], d6, src))
+    np.testing.assert_array_equal(got, expected)
     with pytest.raises(BagError, match=r"lacks field\(s\) \['z'\]"):
         d4 = np.dtype([("x", "<f4"), ("y", "<f4")])
         pointcloud2_to_points(_cloud(["x", "y"], d4, src))

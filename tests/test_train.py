@@ -1043,6 +1043,40 @@ def test_sweep_refuses_values_the_config_would(values, flag):
         stack_hypers(CFG, *values)
 
 
+def test_sweep_takes_zeros_as_the_config_does():
+    """An ablation sweeps a loss weight down to 0, which LossConfig allows (>= 0), as it
+    allows a learning rate of 0; weights not given are the config's for every member."""
+    dataclasses.replace(CFG.loss, dice_weight=0.0)  # the config's rule: 0 is a weight
+    hypers = stack_hypers(CFG, [0.0, 1e-3], {"dice": [0.0, 1.0]})
+    np.testing.assert_array_equal(hypers.learning_rate, np.float32([0.0, 1e-3]))
+    np.testing.assert_array_equal(hypers.weights["dice"], [0.0, 1.0])
+    np.testing.assert_array_equal(hypers.weights["cls"], np.float32([CFG.loss.cls_weight] * 2))
+
+
+def test_sweep_weight_lists_need_one_value_per_learning_rate():
+    """Each --NAME-weights list gives one value per model: a shorter or longer list is named
+    (a [1] weight against [2] learning rates failed later inside the vmapped step)."""
+    for given in ([1.0], [1.0, 2.0, 3.0]):
+        message = rf"--dice-weights: expected 2 values, got {len(given)}"
+        with pytest.raises(ValueError, match=message):
+            stack_hypers(CFG, [1e-3, 2e-3], {"dice": given})
+
+
+def test_same_settings_compares_the_weight_names_too():
+    """A resumed sweep must have the same learning rates and the same named weights: equal
+    values under another weight's name are other settings."""
+    from indoorbev_jax.sweep import hypers_to_json, same_settings
+
+    saved = hypers_to_json(stack_hypers(CFG, [1e-3, 2e-3], {"dice": [1.0, 2.0]}))
+    assert same_settings(saved, json.loads(json.dumps(saved)))
+    for name in ("dice", "cls"):
+        renamed = json.loads(json.dumps(saved))
+        renamed["weights"]["other"] = renamed["weights"].pop(name)
+        assert not same_settings(saved, renamed) and not same_settings(renamed, saved)
+    one = {"learning_rate": [1e-3], "weights": {"dice": [1.0]}}
+    assert not same_settings(one, {"learning_rate": [1e-3], "weights": {"focal": [1.0]}})
+
+
 def test_train_and_sweep_refuse_each_others_workdir(data, tmp_path):
     """With the same config and data the resume checks passed, and the first checkpoint
     save deleted the other run's checkpoints as 'unreadable'."""

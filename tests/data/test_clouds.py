@@ -89,6 +89,19 @@ def test_pcd_intensity_names_and_no_intensity(tmp_path):
     np.testing.assert_array_equal(got[:, 3], np.round(POINTS[:, 3]))
 
 
+def test_pcd_intensity_field_named_i(tmp_path):
+    """The module reads intensity from ``intensity``, ``reflectivity`` or ``i``: a cloud whose
+    field is ``i`` must give its values, not the zeros of a cloud without intensity."""
+    layout = [("x", "<f4", 4, "F", 1), ("y", "<f4", 4, "F", 1), ("z", "<f4", 4, "F", 1),
+              ("i", "<f4", 4, "F", 1)]  # fmt: skip
+    s = np.zeros(len(POINTS), [(n, t) for n, t, *_ in layout])
+    for k, name in enumerate("xyzi"):
+        s[name] = POINTS[:, k]
+    for data in ("binary", "ascii"):
+        _write_pcd(tmp_path / f"i_{data}.pcd", POINTS, data, layout=layout, s=s)
+        np.testing.assert_array_equal(clouds.read_pcd(tmp_path / f"i_{data}.pcd"), POINTS)
+
+
 def test_bad_pcd_files_are_named(tmp_path):
     path = tmp_path / "b.pcd"
     _write_pcd(path, POINTS)
@@ -97,6 +110,8 @@ def test_bad_pcd_files_are_named(tmp_path):
         (good.replace(b"DATA binary", b"DATA binary_compressed"),
          r"b\.pcd: DATA binary_compressed \(LZF\) is not read; convert it .*pcl_convert"),
         (good[:-10], r"b\.pcd: DATA binary holds \d+ bytes, expected POINTS 50 x 39 bytes = 1950"),
+        # One byte short, the boundary: numpy's "buffer is smaller" named no file.
+        (good[:-1], r"b\.pcd: DATA binary holds 1949 bytes, expected POINTS 50 x 39 bytes = 1950"),
         (good.replace(b"FIELDS normal x y _ z", b"FIELDS normal x y _ h"),
          r"b\.pcd: no field\(s\) \['z'\]"),
         (good.replace(b"VIEWPOINT", b"VIEWPINT"), r"b\.pcd:9: unknown PCD header keyword"),
@@ -193,6 +208,18 @@ def test_channels_first_npy_is_named(tmp_path):
         clouds.read_npy(tmp_path / "cn.npy")
     np.save(tmp_path / "few.npy", POINTS[:4])  # 4 points of 4 values: [N, C] as documented
     np.testing.assert_array_equal(clouds.read_npy(tmp_path / "few.npy"), POINTS[:4])
+
+
+@pytest.mark.parametrize("channels", [3, 4, 5])
+def test_channels_first_npy_of_any_readable_width_is_named(tmp_path, channels):
+    """[N, C] is read for C = 3, 4 or 5 (x, y, z, intensity, ring/time), so [C, N] of each of
+    them must be refused: read as rows, [5, N] gave 5 "points" made of channel values."""
+    arr = np.c_[POINTS, np.ones(len(POINTS))][:, :channels].T
+    np.save(tmp_path / "cf.npy", arr)
+    with pytest.raises(
+        kitti.DatasetError, match=rf"cf\.npy: shape \[{channels}, 50\] looks channels-first"
+    ):
+        clouds.read_npy(tmp_path / "cf.npy")
 
 
 def test_a_bad_file_in_a_folder_is_a_bad_frame_not_a_stop(tmp_path, monkeypatch):

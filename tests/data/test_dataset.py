@@ -122,6 +122,64 @@ def test_more_points_than_max_keeps_an_even_spread(tmp_path):
     assert gaps.max() < 0.05
 
 
+def test_objects_beyond_max_objects_are_counted_and_reported(tmp_path, capsys):
+    """Only the first data.max_objects labels become targets; the rest are counted in
+    FrameStats.dropped_objects, and ``dataset check`` reports them as a problem (exit 1)."""
+    m = CFG.data.max_objects
+    n = m + 2
+    labels = kitti.ObjectLabels(
+        classes=[k % NUM_CLASSES for k in range(n)],
+        dims=[[0.5, 0.5, 0.5]] * n,
+        pos=[[0.4 * k - 3.0, 0.5, 0.25] for k in range(n)],
+        yaw=[0.0] * n,
+        occlusion=[0] * n,
+    )
+    pts = np.random.default_rng(0).uniform(-2, 2, (200, 4)).astype(np.float32)
+    kitti.write_frame(tmp_path, "000000", pts, labels, CLASS_NAMES)
+    item, stats = KittiDataset(tmp_path, None, CFG).load(0)
+    assert stats.objects == n and stats.dropped_objects == n - m == 2
+    assert item.targets.valid.sum() == m
+    assert item.targets.classes.tolist() == [k % NUM_CLASSES for k in range(m)]
+    assert cli_main(["dataset", "check", str(tmp_path), "--preset", "tiny"]) == 1
+    out = capsys.readouterr().out
+    assert f"objects beyond data.max_objects: {n - m}" in out
+    assert f"000000: {n} objects, only the first {m} fit data.max_objects" in out
+
+
+def test_a_mask_id_past_the_label_count_is_named(tmp_path):
+    """A mask_2 instance id k refers to label line k: an id beyond the label file's objects
+    is an unlabelled footprint, refused naming the mask (it was dropped without a word)."""
+    make_dataset(tmp_path)
+    ids = np.zeros(CFG.grid.shape, np.int32)
+    ids[10:14, 10:20] = 1
+    ids[20, 20] = 3  # the label file has 2 objects
+    kitti.write_frame(
+        tmp_path, "000001", np.zeros((0, 4), np.float32), labels_two_objects(), CLASS_NAMES, ids
+    )
+    ds = KittiDataset(tmp_path, "train", CFG)
+    with pytest.raises(
+        kitti.DatasetError, match=r"mask_2/000001\.png: instance id 3 but the label file has 2 "
+    ):
+        ds.load(1)
+
+
+def test_batches_drop_the_short_last_batch_only_when_asked(tmp_path):
+    """``batches`` keeps one static batch shape (jit compiles once) by dropping the remainder
+    by default; ``drop_remainder=False`` yields it as a short last batch. Frames come in
+    ``order``."""
+    for k in range(5):
+        pts = np.array([[0.5 + 0.5 * k, 0.0, 0.0, 0.5]], np.float32)
+        kitti.write_frame(tmp_path, f"{k:06d}", pts, kitti.ObjectLabels.empty(), CLASS_NAMES)
+    ds = KittiDataset(tmp_path, None, CFG)
+
+    def frames(batches):  # the frame index of each batch element, from its one point's x
+        return [np.round((b.points[:, 0, 0] - 0.5) / 0.5).astype(int).tolist() for b in batches]
+
+    assert frames(ds.batches(2)) == [[0, 1], [2, 3]]
+    assert frames(ds.batches(2, drop_remainder=False)) == [[0, 1], [2, 3], [4]]
+    assert frames(ds.batches(2, order=[4, 3, 2, 1, 0])) == [[4, 3], [2, 1]]
+
+
 def test_split_id_without_files_is_named(tmp_path):
     make_dataset(tmp_path)
     kitti.write_split(tmp_path, "val", ["000000", "000777"])

@@ -9,6 +9,7 @@ from shapely.geometry import Polygon
 
 from indoorbev_jax.config import GridConfig
 from indoorbev_jax.data.rasterize import instance_ids_from_masks, rasterize_boxes
+from indoorbev_jax.geometry import cell_index, in_workspace
 
 GRID = GridConfig(x_range=(-5.0, 5.0), y_range=(-4.0, 4.0), cell_size=0.25)  # H 32, W 40
 rasterize = jax.jit(rasterize_boxes, static_argnums=2)
@@ -165,3 +166,35 @@ def test_edges_through_inexact_cell_centres_count_as_inside():
     for k, mask in enumerate(np.asarray(masks)):
         want = (rows >= r0[k]) & (rows <= r1[k]) & (cols >= c0[k]) & (cols <= c1[k])
         np.testing.assert_array_equal(mask, want, err_msg=f"box {k}: {boxes[k]}")
+
+
+def test_cell_index_on_a_workspace_not_centred_on_the_sensor():
+    """The cell of (x, y) is (floor((y - y_min)/v), floor((x - x_min)/v)), clipped: on a
+    forward-looking grid (x from 0, y from -4) rows and columns start at different origins,
+    which the centred grids of the other tests cannot tell apart."""
+    grid = GridConfig(x_range=(0.0, 8.0), y_range=(-4.0, 4.0), cell_size=0.5)  # H 16, W 16
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-1.0, 9.0, 500).astype(np.float32)
+    y = rng.uniform(-5.0, 5.0, 500).astype(np.float32)
+    row, col, inside = cell_index(jnp.asarray(x), jnp.asarray(y), grid)
+    v = np.float32(0.5)
+    want_row = np.clip(np.floor((y - np.float32(-4.0)) / v), 0, 15).astype(np.int32)
+    want_col = np.clip(np.floor((x - np.float32(0.0)) / v), 0, 15).astype(np.int32)
+    want_inside = (x >= 0) & (x <= 8) & (y >= -4) & (y <= 4)
+    np.testing.assert_array_equal(np.asarray(row), want_row)
+    np.testing.assert_array_equal(np.asarray(col), want_col)
+    np.testing.assert_array_equal(np.asarray(inside), want_inside)
+    assert 0 < want_inside.sum() < 500 and len(np.unique(want_row[want_inside])) == 16
+
+
+def test_the_workspace_is_closed_in_z():
+    """DESIGN section 2: the workspace is closed, so z = z_min and z = z_max are inside (a
+    floor return at exactly z_min counts) and the next float beyond either is outside."""
+    grid = GridConfig(x_range=(0.0, 8.0), y_range=(-4.0, 4.0), z_range=(-3.0, 3.0), cell_size=0.5)
+    lo, hi = np.float32(-3.0), np.float32(3.0)
+    z = np.array([lo, hi, np.nextafter(lo, -np.inf), np.nextafter(hi, np.inf), 0.0], np.float32)
+    xyz = np.stack([np.full(5, 1.0, np.float32), np.zeros(5, np.float32), z], 1)
+    np.testing.assert_array_equal(in_workspace(xyz, grid), [True, True, False, False, True])
+    np.testing.assert_array_equal(
+        np.asarray(in_workspace(jnp.asarray(xyz), grid)), [True, True, False, False, True]
+    )

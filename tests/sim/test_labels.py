@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data.rasterize import instance_ids_from_masks
+from indoorbev_jax.geometry import cell_centers
 
 # Noise-free so the reference's hits can be compared ray for ray (shared with test_scenes:
 # the jitted generators are cached per config in ``generate``).
@@ -293,6 +294,61 @@ def test_true_shape_footprints_round_table_and_l_sofa():
     )  # fmt: skip
     ours = labels.footprints(tpl, scene, 0.0, jnp.zeros(3), jnp.float32(0.0), FINE)[0]
     assert (np.asarray(ours) != fp).sum() <= 4
+
+
+def test_footprint_reach_windows_hold_the_whole_footprint_of_the_largest_objects():
+    """``footprints`` with ``reach=footprint_reach(...)`` rasterises each object in a window
+    that must hold its whole footprint: for the largest bank instance of every class and
+    variant, grown by the full scale jitter, at several yaws and a turned sensor, the
+    windowed footprints equal the whole-grid ones, and no marked cell lies beyond the reach."""
+    from indoorbev_sim.scenes import OBJECT_SCALE_JITTER
+
+    grid = GridConfig(x_range=(-5.0, 5.0), y_range=(-5.0, 5.0), cell_size=0.05)  # 200 x 200
+    per = CFG.sim.bank_per_variant
+    bank = objects.object_bank(per)
+    picks = []  # (class, variant, instance) of the widest instance of every variant
+    for c, spec in enumerate(objects.CLASSES):
+        for v in range(len(spec.variants)):
+            k = int(np.argmax(np.hypot(bank.dims[c, v, :, 0], bank.dims[c, v, :, 1])))
+            picks += [(c, v, k)] * 3  # three yaws each
+    cs, vs, ks = map(np.array, zip(*picks, strict=True))
+    num = len(picks)
+    scale = 1 + OBJECT_SCALE_JITTER
+    prims = jax.tree.map(lambda x: jnp.asarray(x[cs, vs, ks]), bank)
+    prims = prims.replace(size=prims.size * scale, pos=prims.pos * scale, dims=prims.dims * scale)
+    yaw = np.tile([0.0, math.pi / 4, 2.0], num // 3)
+    pose = np.stack([np.full(num, 0.37), np.full(num, -0.21), yaw], 1)
+    scene = scenes.Scene(
+        room=None, on=jnp.ones(num, bool), variant=jnp.asarray(vs, jnp.int32), prims=prims,
+        reflectivity=jnp.zeros(num), background=jnp.zeros(3),
+        pose=jnp.asarray(pose, jnp.float32), velocity=jnp.zeros((num, 2)),
+        ego=jnp.zeros(3), ego_velocity=jnp.zeros(2), sensor_height=jnp.zeros(()),
+        sensor_rpy=jnp.zeros(3),
+    )  # fmt: skip
+    geom = np.full((num, objects.MAX_PRIMS), -1)
+    for s, c in enumerate(cs):
+        geom[s, : len(objects.CLASSES[c].prims)] = 0
+    tpl = types.SimpleNamespace(num_slots=num, slot_class=cs, prim_geom=geom)
+    origin, heading = jnp.array([0.1, -0.2, 0.0]), jnp.float32(0.4)
+    reach = labels.footprint_reach(per, grid.cell_size)
+    assert 2 * math.ceil(reach / grid.cell_size) + 2 < 200  # the windowed path is taken
+    windowed = np.asarray(labels.footprints(tpl, scene, 0.0, origin, heading, grid, reach))
+    whole = np.asarray(labels.footprints(tpl, scene, 0.0, origin, heading, grid, None))
+    assert whole.sum(axis=(1, 2)).min() > 0
+    np.testing.assert_array_equal(windowed, whole)
+    # The reach is what its docstring says: no marked cell centre lies farther from the centre.
+    centre = np.asarray(labels.to_lidar(jnp.asarray(pose[:1, :2], jnp.float32), origin, heading))
+    xs, ys = (np.asarray(a) for a in cell_centers(grid))
+    dist = np.hypot(xs[None, :] - centre[0, 0], ys[:, None] - centre[0, 1])  # [H, W]
+    assert dist[whole.any(0)].max() <= reach
+
+
+def test_occlusion_levels_are_kittis_at_their_boundaries():
+    """KITTI levels: 0 for visibility >= 0.75, 1 for >= 0.4, 2 for any visibility or any
+    point, 3 for none. 3 of 4 primitives seen is exactly 0.75, which is fully visible."""
+    vis = jnp.array([1.0, 0.75, 0.7499, 0.4, 0.3999, 0.0, 0.0], jnp.float32)
+    points = jnp.array([9, 1, 1, 1, 1, 1, 0])
+    np.testing.assert_array_equal(labels.occlusion_level(vis, points), [0, 0, 1, 1, 2, 2, 3])
 
 
 def test_rectangles_match_the_shared_box_rasteriser():
