@@ -152,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
     ck.add_argument(
         "--split",
         default="train",
-        help="the split's scenes to draw: train, val or test (held-out layouts and variants)",
+        choices=("train", "val", "test"),
+        help="the split's scenes to draw (test: held-out layouts and variants)",
     )
     _add_set(ck, "e.g. 'sim.sensor_rpy=[0,20,0]'")
     ck.add_argument("--noise-free", action="store_true", help="no range noise or dropout")

@@ -37,7 +37,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from indoorbev_jax.cli import check_folder, check_seed, check_whole
+from indoorbev_jax.cli import check_folder, check_interrupted, check_seed, check_whole
 from indoorbev_jax.config import Config, flatten_dict
 from indoorbev_jax.data import kitti
 from indoorbev_jax.rosbag import (
@@ -270,6 +270,7 @@ def export(
     # initial=done: frames kept from an earlier run do not count toward the rate and ETA.
     with tqdm(total=frames, initial=done, desc="export", unit="frame", disable=not progress) as bar:
         for j in todo:
+            check_interrupted()
             batch, info = fn(jax.random.fold_in(key, j), scene_split(j) == "test")
             write_scene(root, config, batch, info, scenes[j])
             time.sleep(throttle)

@@ -376,7 +376,7 @@ def check(config: Config, frames: int, batch_size: int, seed: int, split: str = 
     """
     import time
 
-    from indoorbev_jax.cli import check_seed, check_whole
+    from indoorbev_jax.cli import check_interrupted, check_seed, check_whole
 
     check_whole("frames", frames, 1)
     check_whole("batch_size", batch_size, 1)
@@ -391,6 +391,7 @@ def check(config: Config, frames: int, batch_size: int, seed: int, split: str = 
     frames_with = np.zeros(config.num_classes, int)
     key = jax.random.key(seed)
     while frames_done < frames:
+        check_interrupted()
         batch, info = fn(jax.random.fold_in(key, frames_done))
         n = min(batch_size, frames - frames_done)
         batch, info = jax.tree.map(lambda x, n=n: np.asarray(x)[:n], (batch, info))

@@ -7,7 +7,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from indoorbev_jax.cli import check_folder
+from indoorbev_jax.cli import check_folder, check_interrupted
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
 from indoorbev_jax.viz import render_bev
@@ -25,6 +25,10 @@ def show(
     """Writes ``<out>/<id>.png`` for frames of the KITTI folder ``root`` (all by default)."""
     root, out = Path(root), check_folder("out", out)
     ids = kitti.list_frames(root) if ids is None else ids
+    missing = [fid for fid in ids if not kitti.frame_paths(root, fid)["points"].exists()]
+    if missing:  # before the output folder is made
+        first = kitti.frame_paths(root, missing[0])["points"]
+        raise FileNotFoundError(f"{root}: no frame {', '.join(missing[:5])} (no {first})")
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for fid in ids:
@@ -34,6 +38,8 @@ def show(
         mask = kitti.read_mask(paths["mask"], config.grid.shape) if paths["mask"].exists() else None
         pic = render_frame(points, labels, mask, config.grid, config.data.class_names)
         path = out / f"{fid}.png"
-        pic.save(path)
+        # Never a half-written picture under its name (Ctrl-C, a full disk on a rerun).
+        kitti.atomic_write(path, lambda tmp, pic=pic: pic.save(tmp, format="PNG"))
         written.append(path)
+        check_interrupted()
     return written

@@ -615,9 +615,36 @@ INTERRUPTED = 130  # the shell's status for a command stopped by Ctrl-C
 SIGINT_SEEN = threading.Event()
 
 
+# Set when Python dropped our KeyboardInterrupt (raised inside a garbage-collector
+# callback): ``check_interrupted`` acts on it between units of work.
+SIGINT_DROPPED = threading.Event()
+
+
 def _remember_sigint(signum, frame):
     SIGINT_SEEN.set()
     raise KeyboardInterrupt
+
+
+def _quiet_dropped_interrupts(hook):
+    """A ``sys.unraisablehook`` that records a dropped KeyboardInterrupt instead of printing
+    "Exception ignored in: <function _xla_gc_callback> ... KeyboardInterrupt"."""
+
+    def handle(unraisable):
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            SIGINT_DROPPED.set()
+            return
+        hook(unraisable)
+
+    return handle
+
+
+def check_interrupted() -> None:
+    """Raises the KeyboardInterrupt of a Ctrl-C that Python dropped (see
+    ``SIGINT_DROPPED``); long loops call it between frames, so such a Ctrl-C still stops
+    them (``indoorbev-sim show`` wrote all its pictures and exited 0)."""
+    if SIGINT_DROPPED.is_set():
+        SIGINT_DROPPED.clear()
+        raise KeyboardInterrupt
 
 
 def _check_jax_platforms(prog: str) -> None:
@@ -650,6 +677,7 @@ def exit_with(main_fn, prog: str):
     """
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not if ignored
         signal.signal(signal.SIGINT, _remember_sigint)
+        sys.unraisablehook = _quiet_dropped_interrupts(sys.unraisablehook)
     _check_jax_platforms(prog)
     try:
         status = main_fn()

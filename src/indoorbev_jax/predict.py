@@ -33,6 +33,7 @@ import numpy as np
 
 from indoorbev_jax import viz
 from indoorbev_jax.boxes import check_box_source, segment_boxes
+from indoorbev_jax.cli import check_interrupted
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data import kitti
 from indoorbev_jax.data.clouds import SUFFIXES as CLOUD_SUFFIXES
@@ -669,6 +670,7 @@ def predict(
 
     def run_frames():
         for position, frame in enumerate(frames_in, 1):
+            check_interrupted()
             count = f"[{position}/{total}] {frame.frame_id}"
             if frame.error is not None:
                 if not skip_bad_frames:

@@ -62,6 +62,10 @@ def test_export_and_check_take_config_overrides_and_name_a_bad_one(tmp_path, cap
     assert "sim has no field 'nope'" in capsys.readouterr().err and not out.exists()
     assert main(["check", "--preset", "tiny", "--set", "sim.sensor_rpy=[0, 20]"]) == 2
     assert "config field 'sim.sensor_rpy': got '[0, 20]'" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as refused:  # was "split: expected ...", no option named
+        main(["check", "--preset", "tiny", "--split", "bogus"])
+    assert refused.value.code == 2
+    assert "argument --split: invalid choice: 'bogus'" in capsys.readouterr().err
 
 
 def test_a_tilted_lidar_publishes_in_its_own_frame_and_the_truth_in_the_level_one():

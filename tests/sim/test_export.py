@@ -9,6 +9,8 @@ import signal
 import subprocess
 import sys
 import time
+import types
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -125,12 +127,53 @@ def test_show_writes_pictures(exported, tmp_path):
     (tmp_path / "a_file").write_text("x")
     with pytest.raises(ValueError, match="a_file: is a file; out must be a folder"):
         show.show(root, tmp_path / "a_file", CFG)
+    # An id with no frame is named before the output folder is made (a raw [Errno 2] after).
+    with pytest.raises(FileNotFoundError, match=r"no frame 999999 \(no .*999999\.bin\)"):
+        show.show(root, tmp_path / "none", CFG, ids=["999999"])
+    assert not (tmp_path / "none").exists()
     from PIL import Image
 
     for path in written:
         img = np.asarray(Image.open(path))
         assert img.shape[0] >= 600 and img.shape[2] == 3
         assert len(np.unique(img.reshape(-1, 3), axis=0)) > 10  # points, masks, boxes drawn
+
+
+def test_show_never_leaves_a_half_written_picture(exported, tmp_path, monkeypatch):
+    """Pillow wrote under the picture's name: a full disk on a rerun cut a good picture to
+    8 KB, a Ctrl-C left a 33-byte PNG. A Ctrl-C that Python dropped (raised in JAX's
+    garbage-collector callback) let show write every picture and exit 0."""
+    from PIL import Image
+
+    from indoorbev_jax import cli
+
+    root, _, _ = exported
+    (good,) = show.show(root, tmp_path, CFG, ids=["000000"])
+    before = good.read_bytes()
+
+    def full_disk(self, fp, format=None, **params):
+        Path(fp).write_bytes(b"\x89PNG partial")
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(Image.Image, "save", full_disk)
+        with pytest.raises(OSError, match=r"cannot write .*000000\.png: No space left"):
+            show.show(root, tmp_path, CFG, ids=["000000"])
+    assert good.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [
+        "000000.png"
+    ]
+    # A dropped Ctrl-C stops the loop after the picture in progress.
+    hook_calls = []
+    hook = cli._quiet_dropped_interrupts(hook_calls.append)
+    hook(types.SimpleNamespace(exc_value=KeyboardInterrupt()))
+    assert hook_calls == [] and cli.SIGINT_DROPPED.is_set()
+    other = types.SimpleNamespace(exc_value=RuntimeError("x"))
+    hook(other)
+    assert hook_calls == [other]  # anything else is printed as before
+    out = tmp_path / "stopped"
+    with pytest.raises(KeyboardInterrupt):
+        show.show(root, out, CFG, ids=["000000", "000001"])
+    assert [p.name for p in out.iterdir()] == ["000000.png"] and not cli.SIGINT_DROPPED.is_set()
 
 
 def _cli(out, cache, *extra):

@@ -32,8 +32,9 @@ def qos(reliable: bool, depth: int):
 def start_node(name: str, ros_args: list[str] | None = None):
     """(context, node) in a fresh rclpy context; ``ros_args`` are what followed
     ``--ros-args`` on the command line (remappings, ``-p`` parameters, log levels)."""
-    from indoorbev_jax.cli import SIGINT_SEEN
+    from indoorbev_jax.cli import SIGINT_SEEN, check_interrupted
 
+    check_interrupted()
     if SIGINT_SEEN.is_set():  # a Ctrl-C during the start-up that Python dropped
         raise KeyboardInterrupt
     rclpy = require_rclpy()
