@@ -631,6 +631,30 @@ def test_console_scripts_exit_130_on_ctrl_c(monkeypatch, capsys):
     assert done.value.code == 2 and exits == [130]
 
 
+def test_a_ctrl_c_python_dropped_still_stops_the_command():
+    """A KeyboardInterrupt raised inside a garbage-collector callback (JAX has one) is
+    printed as "Exception ignored" and dropped: `dataset check` then ran to its end, status
+    0. exit_with's unraisable hook delivers it again, quietly, and the command stops."""
+    code = (
+        "import signal, sys, time, types\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+        "from indoorbev_jax.cli import exit_with\n"
+        "def main():\n"
+        "    dropped = types.SimpleNamespace(exc_type=KeyboardInterrupt, exc_traceback=None,\n"
+        "        exc_value=KeyboardInterrupt(), err_msg=None, object=None)\n"
+        "    sys.unraisablehook(dropped)  # what Python does with it in a GC callback\n"
+        "    for _ in range(300):\n"
+        "        time.sleep(0.01)\n"
+        "    print('ran to the end')\n"
+        "    return 0\n"
+        "exit_with(main, 'probe')\n"
+    )
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, env=env)  # fmt: skip
+    assert (done.returncode, done.stdout, done.stderr) == (130, "", "probe: interrupted\n")
+
+
 def test_unknown_ros_args_fail_first_in_one_line(capsys):
     """An argument after --ros-args that rclpy does not take is named before the model
     loads (it used to end in rclpy's traceback after the warm-up, status 1)."""

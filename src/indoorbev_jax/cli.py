@@ -8,6 +8,7 @@ indoorbev ros2 detect --checkpoint MODEL [--topic /livox/lidar] [--record BAG]
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import math
 import numbers
@@ -622,16 +623,20 @@ SIGINT_DROPPED = threading.Event()
 
 def _remember_sigint(signum, frame):
     SIGINT_SEEN.set()
+    SIGINT_DROPPED.clear()  # this one is raised
     raise KeyboardInterrupt
 
 
-def _quiet_dropped_interrupts(hook):
-    """A ``sys.unraisablehook`` that records a dropped KeyboardInterrupt instead of printing
-    "Exception ignored in: <function _xla_gc_callback> ... KeyboardInterrupt"."""
+def _quiet_dropped_interrupts(hook, redeliver=_thread.interrupt_main):
+    """A ``sys.unraisablehook`` that, for a dropped KeyboardInterrupt, delivers the Ctrl-C
+    again (``redeliver``: as if it came now, outside the callback) instead of printing
+    "Exception ignored in: <function _xla_gc_callback> ... KeyboardInterrupt" and going on;
+    ``SIGINT_DROPPED`` stays set until it is raised, for ``check_interrupted``."""
 
     def handle(unraisable):
         if isinstance(unraisable.exc_value, KeyboardInterrupt):
             SIGINT_DROPPED.set()
+            redeliver()
             return
         hook(unraisable)
 

@@ -243,6 +243,9 @@ def test_a_failed_write_names_the_file_and_leaves_nothing(tmp_path):
     (tmp_path / "afile").write_text("")
     with pytest.raises(OSError, match=r"cannot write .*afile/x/a\.bin: .*afile is a file, not"):
         kitti.atomic_write(tmp_path / "afile" / "x" / "a.bin", full)
+    # Looking for that file must not replace the message (Path.is_file raised here).
+    with pytest.raises(OSError, match=r"cannot write .*a\.bin: File name too long"):
+        kitti.atomic_write(tmp_path / ("n" * 300) / "a.bin", full)
 
 
 def test_split_files_from_other_editors(tmp_path):

@@ -163,13 +163,14 @@ def test_show_never_leaves_a_half_written_picture(exported, tmp_path, monkeypatc
         "000000.png"
     ]
     # A dropped Ctrl-C stops the loop after the picture in progress.
-    hook_calls = []
-    hook = cli._quiet_dropped_interrupts(hook_calls.append)
+    hook_calls, redelivered = [], []
+    hook = cli._quiet_dropped_interrupts(hook_calls.append, lambda: redelivered.append(1))
     hook(types.SimpleNamespace(exc_value=KeyboardInterrupt()))
-    assert hook_calls == [] and cli.SIGINT_DROPPED.is_set()
+    assert hook_calls == [] and redelivered == [1] and cli.SIGINT_DROPPED.is_set()
     other = types.SimpleNamespace(exc_value=RuntimeError("x"))
     hook(other)
-    assert hook_calls == [other]  # anything else is printed as before
+    assert hook_calls == [other] and redelivered == [1]  # anything else is printed as before
+    # Should the delivered-again Ctrl-C be dropped as well, the loop still stops.
     out = tmp_path / "stopped"
     with pytest.raises(KeyboardInterrupt):
         show.show(root, out, CFG, ids=["000000", "000001"])

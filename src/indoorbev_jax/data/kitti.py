@@ -111,7 +111,7 @@ def file_in_path(folder: Path) -> Path | None:
     """The first of ``folder`` and its parents that is a file (a folder cannot be made
     under it), or None."""
     for part in (*reversed(Path(folder).parents), Path(folder)):
-        if part.is_file():
+        if os.path.isfile(part):  # False, not an error, for a name too long or unreadable
             return part
     return None
 

@@ -152,6 +152,8 @@ class Detector:
         except BagError as e:
             return self._empty(stamp, frame, str(e))
         except Exception as e:  # noqa: BLE001 - a layout the checks missed is still bad input
+            # MemoryError included, on purpose: a cloud whose header claims billions of
+            # points is one bad message, and the node goes on with the next.
             return self._empty(stamp, frame, f"{source}: cannot read ({type(e).__name__}: {e})")
         padded, valid, counts = self.predictor.prepare(points)
         notes = []
