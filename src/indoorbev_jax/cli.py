@@ -627,7 +627,15 @@ def _remember_sigint(signum, frame):
     raise KeyboardInterrupt
 
 
-def _quiet_dropped_interrupts(hook, redeliver=_thread.interrupt_main):
+def _redeliver_soon() -> None:
+    """SIGINT to the main thread again in 50 ms, from another thread: delivered at once it
+    is handled inside the unraisable hook itself, and dropped there for good."""
+    timer = threading.Timer(0.05, _thread.interrupt_main)
+    timer.daemon = True
+    timer.start()
+
+
+def _quiet_dropped_interrupts(hook, redeliver=_redeliver_soon):
     """A ``sys.unraisablehook`` that, for a dropped KeyboardInterrupt, delivers the Ctrl-C
     again (``redeliver``: as if it came now, outside the callback) instead of printing
     "Exception ignored in: <function _xla_gc_callback> ... KeyboardInterrupt" and going on;
