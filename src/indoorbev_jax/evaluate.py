@@ -216,6 +216,7 @@ def report(
 
 def eval_command(args: argparse.Namespace) -> int:
     """Entry point of ``indoorbev eval``: prints ``report``'s text, optionally writes its JSON."""
+    from indoorbev_jax.cli import check_out_file, write_json
     from indoorbev_jax.config import ConfigError
     from indoorbev_jax.data import kitti
     from indoorbev_jax.data.dataset import dataset_config
@@ -223,10 +224,7 @@ def eval_command(args: argparse.Namespace) -> int:
     try:
         config, source = dataset_config(args.gt, args.preset, args.set)
         if args.json:  # a bad path fails now, not after the whole evaluation
-            out = Path(args.json)
-            out.parent.mkdir(parents=True, exist_ok=True)
-            if out.is_dir():
-                raise IsADirectoryError(f"--json {out}: is a folder, expected a file name")
+            check_out_file("--json", args.json)
         notes: list[str] = []
         evaluator = folder_evaluator(args.gt, args.pred, config, args.split, notes)
     except (kitti.DatasetError, OSError) as e:
@@ -247,8 +245,7 @@ def eval_command(args: argparse.Namespace) -> int:
         print(note)
     print(text)
     if args.json:
-        text = json.dumps(payload, indent=2) + "\n"
-        kitti.atomic_write(Path(args.json), lambda tmp: tmp.write_text(text))
+        write_json(args.json, payload)
         print(f"metrics written to {args.json}")
     return 0
 

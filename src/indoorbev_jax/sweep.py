@@ -190,9 +190,7 @@ def run_sweep(
     a workdir holding another sweep (config, data, its train.txt or hypers) or a training
     run is refused, naming what differs.
     """
-    check_train_seed(config.train)
-    workdir = Path(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
+    check_train_seed(config.train)  # holds_workdir made workdir, a Path
     t = config.train
     k = int(hypers.learning_rate.shape[0])
     config_path, run_path = workdir / "config.json", workdir / "run.json"
@@ -202,10 +200,11 @@ def run_sweep(
     check_run_kind(workdir, "sweep")
     if config_path.exists():
         check_resume(config_path, run_path, config, data_source, "sweep")
-    if hypers_path.exists() and not same_settings(json.loads(hypers_path.read_text()), settings):
+    saved = read_json(hypers_path) if hypers_path.exists() else None
+    if saved is not None and not same_settings(saved, settings):
         raise ValueError(
             f"{hypers_path}: the workdir holds a sweep of other settings "
-            f"({json.loads(hypers_path.read_text())}, given {settings}); sweep in another workdir"
+            f"({saved}, given {settings}); sweep in another workdir"
         )
     key = jax.random.key(t.seed)
     states = init_sweep(config, k, jax.random.fold_in(key, KEY_INIT))

@@ -1006,9 +1006,7 @@ def train_and_evaluate(
     """
     from tqdm import tqdm
 
-    check_train_seed(config.train)
-    workdir = Path(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
+    check_train_seed(config.train)  # holds_workdir made workdir, a Path
     # Every check runs before config.json is written, so a refused start leaves nothing
     # that would refuse the corrected command too.
     config_path, run_path = workdir / "config.json", workdir / "run.json"
