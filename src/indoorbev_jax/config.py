@@ -615,7 +615,9 @@ def check_train_seed(train: TrainConfig) -> None:
     takes 32 bits here (2**32 was seed 0's run again) and numpy's generator refuses < 0 (at
     step 0, after config.json). Not a field check: a model file of an older version with
     such a seed still loads (inference never draws from it)."""
-    if not 0 <= train.seed < 2**32:
+    from indoorbev_jax.cli import SEED_LIMIT  # the bound of every seed option
+
+    if not 0 <= train.seed < SEED_LIMIT:
         _fail("train.seed", f"must lie in [0, 2**32) to start a run, got {train.seed}")
 
 
