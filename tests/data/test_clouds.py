@@ -245,6 +245,13 @@ def test_a_bad_file_in_a_folder_is_a_bad_frame_not_a_stop(tmp_path, monkeypatch)
     assert isinstance(b.error, kitti.DatasetError)
     assert str(b.error) == f"{tmp_path / 'b.npy'}: unreadable (IndexError: list index out of range)"
 
+    def no_memory(path):
+        raise MemoryError
+
+    monkeypatch.setattr(P, "read_cloud", no_memory)  # the machine's trouble: it stops the run
+    with pytest.raises(MemoryError):
+        list(P.open_input(tmp_path)[1])
+
 
 @pytest.mark.parametrize("data", ["binary", "ascii"])
 def test_a_count_2_intensity_reads_its_first_value(tmp_path, data):
