@@ -46,9 +46,8 @@ def main(argv=None) -> None:
     )
     p.add_argument(
         "--model",
-        default=str(SHIPPED),
-        help="model file or run directory; when missing, an untrained network runs (default: "
-        "the repository's models/indoorbev_small.msgpack)",
+        help="model file or run directory (default: the repository's "
+        "models/indoorbev_small.msgpack; an untrained network runs when the repository has none)",
     )
     p.add_argument(
         "--seed",
@@ -59,18 +58,21 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     from indoorbev_sim.generate import jitted_generate
 
-    if Path(args.model).exists():
+    if args.model is not None and not Path(args.model).exists():  # a typo must not run untrained
+        p.exit(2, f"demo.py: --model: no such file or folder: {args.model}\n")
+    model = Path(args.model) if args.model is not None else SHIPPED
+    if model.exists():
         try:
-            config, params = load_model(args.model)
+            config, params = load_model(model)
         except (OSError, ValueError) as e:  # not a model file: one line, as eval_sim's
             p.exit(2, f"demo.py: {e}\n")
-        print(f"model: {args.model}")
+        print(f"model: {model}")
     else:
         from indoorbev_jax.train import init_state
 
         config = Config.small()
         params = init_state(config, jax.random.key(args.seed)).params
-        print(f"model: no checkpoint at {args.model}; running an UNTRAINED network")
+        print(f"model: no checkpoint at {model}; running an UNTRAINED network")
 
     start = time.perf_counter()
     batch, _ = jitted_generate(config, "test", args.frames)(jax.random.key(args.seed))

@@ -439,6 +439,7 @@ def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
         ("eval_sim", ["--model", "m", "--seed", str(2**32 + 5)], "argument --seed: expected a wh"),
         ("demo", ["--seed", "-1"], "argument --seed: expected a whole number in [0, 2**32)"),
         ("demo", ["--model", str(REPO / "pyproject.toml")], "demo.py: "),
+        ("demo", ["--model", "models/no_such.msgpack"], "--model: no such file or folder"),
         ("split_pairing", ["--val-seed", str(2**63)], "argument --val-seed: expected a whole"),
         ("split_pairing", ["--preset", "bogus"], "argument --preset: invalid choice: 'bogus'"),
         ("overfit_check", ["--set", "nosuch.field=1"], "error: --set: "),
