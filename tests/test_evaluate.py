@@ -94,3 +94,18 @@ def test_an_empty_ground_truth_folder_is_named(tmp_path, capsys):
     )
     assert main([*argv, "--set", "grid.cel=1"]) == 2  # a usage error, not the data's
     assert "indoorbev eval: error: " in capsys.readouterr().err
+
+
+def test_scores_closer_than_float32_keep_the_files_ranking(tmp_path):
+    """Scores are ranked as written (pycocotools keeps them float64): a true chair scored
+    0.90000004 after a false one scored 0.90000001 on the line before is the first detection,
+    so AP is 1. Read as float32 the two tie, the line order ranked the false one first and AP
+    was precision 1/2 at recall 1, 0.5."""
+    assert np.float32(0.90000001) == np.float32(0.90000004)  # the case is a float32 tie
+    kitti.write_labels(tmp_path / "gt/label_2/a.txt", _labels([[0.0, 0.0]]), NAMES)
+    path = tmp_path / "pred/label_2/a.txt"
+    kitti.write_labels(path, _labels([[3.0, 3.0], [0.0, 0.0]], [0.25, 0.75]), NAMES)
+    text = path.read_text().replace("0.250000", "0.90000001").replace("0.750000", "0.90000004")
+    path.write_text(text)
+    res = evaluate_folders(tmp_path / "gt", tmp_path / "pred", CFG)
+    assert res["ap"] == {0.25: pytest.approx(1.0), 0.5: pytest.approx(1.0)}

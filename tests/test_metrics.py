@@ -449,6 +449,34 @@ def test_panoptic_quality_hand_example():
     ] == pytest.approx(0.5)
 
 
+def test_paper_miou_ties_go_to_the_lower_ids_and_its_threshold_is_above_0():
+    """METRICS.md: pairs tied on IoU are taken lower ground-truth id first, then lower
+    predicted id. One row of 12 cells, all class 0: GT A = cells 0-3, GT B = 4-7; P = 2-5
+    (IoU 1/3 with A and with B), Q = {0, 1, 8, 9} (IoU 1/3 with A only). P numbered before Q
+    takes A and leaves B alone (1 match); Q before P takes A and P then takes B (2)."""
+    gt = np.zeros((1, 12), np.int32)
+    gt[0, 0:4], gt[0, 4:8] = 1, 2
+    p_cells, q_cells = [2, 3, 4, 5], [0, 1, 8, 9]
+    for first, second, matched in ((p_cells, q_cells, 1), (q_cells, p_cells, 2)):
+        pred = np.zeros((1, 12), np.int32)
+        pred[0, first], pred[0, second] = 1, 2
+        out = paper_miou([(gt, np.array([9, 0, 0]))], [(pred, np.array([9, 0, 0]))])
+        assert out["matched"][0] == matched
+        assert out["miou"] == pytest.approx(1 / 3)
+    # At threshold 0 segments sharing no cell would be a match: refused, as a negative one.
+    disjoint = np.zeros((1, 12), np.int32)
+    disjoint[0, 10:12] = 1
+    for bad in (0.0, -1.0, 1.5, math.nan):
+        with pytest.raises(ValueError, match=r"expected a value in \(0, 1\]"):
+            paper_miou([(gt, np.array([9, 0, 0]))], [(disjoint, np.array([9, 0]))],
+                       iou_threshold=bad)  # fmt: skip
+        with pytest.raises(ValueError, match="miou_match_iou"):
+            Evaluator(miou_match_iou=bad)
+    tiny = paper_miou([(gt, np.array([9, 0, 0]))], [(disjoint, np.array([9, 0]))],
+                      iou_threshold=1e-9)  # fmt: skip
+    assert tiny["matched"][0] == 0 and math.isnan(tiny["miou"])
+
+
 def test_panoptic_edge_cases():
     empty = np.zeros((5, 5), np.int32)
     one = empty.copy()

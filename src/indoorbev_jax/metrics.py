@@ -483,6 +483,12 @@ class _PanopticStats:
     match_iou: float = 0.25
 
     def __post_init__(self):
+        # A threshold of 0 would match same-class segments that share no cell.
+        if not 0.0 < self.match_iou <= 1.0:
+            raise ValueError(
+                f"mIoU match threshold (iou_threshold / miou_match_iou): expected a value in "
+                f"(0, 1], got {self.match_iou!r}"
+            )
         k = self.num_classes
         self.tp = np.zeros(k, np.int64)
         self.fp = np.zeros(k, np.int64)
@@ -526,7 +532,8 @@ class _PanopticStats:
         self.fn += np.bincount(gcls[g_seg & ~g_hit], minlength=k)
         self.fp += np.bincount(pcls[p_seg & ~p_hit], minlength=k)
 
-        # Paper mIoU: one-to-one greedy matching by IoU, highest first, at >= match_iou.
+        # Paper mIoU: one-to-one greedy matching by IoU, highest first, at >= match_iou;
+        # ties: lower GT id, then lower predicted id (nonzero's order, a stable sort).
         gi, pi = np.nonzero(pairable & (iou >= self.match_iou))
         order = np.argsort(-iou[gi, pi], kind="stable")
         g_used, p_used = set(), set()
@@ -628,14 +635,15 @@ def paper_miou(gts, preds, *, iou_threshold: float = 0.25, num_classes: int = NU
     """The paper's mIoU: mean IoU of ground-truth objects matched to a same-class prediction.
 
     Per frame and class, segments (as in ``panoptic_quality``) are matched one-to-one greedily
-    by IoU, highest first, among pairs with IoU >= ``iou_threshold`` (a correct detection at
-    AP@0.25). Per class: the mean IoU of the matched ground-truth objects; ``miou``: the mean
-    over classes with at least one match (NaN when none). Unmatched objects do not count: this
-    measures footprint quality of found objects; AP and PQ measure finding them.
+    by IoU, highest first (ties: lower ground-truth id, then lower predicted id), among pairs
+    with IoU >= ``iou_threshold`` (a correct detection at AP@0.25). Per class: the mean IoU of
+    the matched ground-truth objects; ``miou``: the mean over classes with at least one match
+    (NaN when none). Unmatched objects do not count: this measures footprint quality of found
+    objects; AP and PQ measure finding them.
 
     Args:
       gts, preds: as in ``panoptic_quality``.
-      iou_threshold: minimum IoU of a match.
+      iou_threshold: minimum IoU of a match, in (0, 1].
       num_classes: number of foreground classes.
 
     Returns:
@@ -705,8 +713,8 @@ class Evaluator:
         self.class_names = tuple(class_names)
         self.num_classes = len(self.class_names)
         self.iou_thresholds = _check_thresholds(iou_thresholds)
-        self.miou_match_iou = miou_match_iou
-        self.reset()
+        self.miou_match_iou = float(miou_match_iou)
+        self.reset()  # checks miou_match_iou
 
     def reset(self) -> None:
         self._ap_frames: list[_APFrame] = []

@@ -58,7 +58,8 @@ class ObjectLabels:
       pos: float32 [M, 3], box centre.
       yaw: float32 [M], heading about +z from +x.
       occlusion: int32 [M], 0 (fully visible) .. 3 (unknown / hardly seen).
-      scores: float32 [M] for predictions, None for ground truth.
+      scores: float64 [M] for predictions (as read: scores float32 would tie rank AP as the
+        file does not), None for ground truth.
     """
 
     classes: np.ndarray
@@ -76,7 +77,7 @@ class ObjectLabels:
         self.yaw = np.asarray(self.yaw, np.float32).reshape(m)
         self.occlusion = np.asarray(self.occlusion, np.int32).reshape(m)
         if self.scores is not None:
-            self.scores = np.asarray(self.scores, np.float32).reshape(m)
+            self.scores = np.asarray(self.scores, np.float64).reshape(m)
 
     def __len__(self) -> int:
         return len(self.classes)
