@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -625,6 +626,8 @@ def test_predict_resumes_and_refuses_another_runs_outputs(model_file, tmp_path, 
     # A kill between frames: frame 1 lost its label, frame 2 its picture.
     (out / "label_2" / "000001.txt").unlink()
     (out / "pictures" / "000002.png").unlink()
+    # ... and a kill -9 inside atomic_write left its hidden temporary file: removed.
+    (out / "mask_2" / ".000001.png.x8k2j3.tmp").write_bytes(b"\x89PNG")
     again = P.predict(model_file, data, out, verbose=False)
     assert again["resumed_frames"] == 1 and again["objects"] == first["objects"]
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*.*")} == files
@@ -794,6 +797,17 @@ def test_input_listing_skips_hidden_files_and_reads_upper_case_bin(tmp_path):
     (tmp_path / "kitti" / "velodyne" / "._000000.bin").write_bytes(b"\0\5\26\7" * 1024)
     count, frames = P.open_input(tmp_path / "kitti")
     assert count == 2 and [f.frame_id for f in frames] == ["000000", "000001"]
+    # Entries named like clouds that are no file are bad frames, named: a dangling symlink
+    # (a scan on an unmounted disk) or a folder was left out without a word.
+    (tmp_path / "kitti" / "velodyne" / "000002.bin").symlink_to(tmp_path / "unmounted.bin")
+    (tmp_path / "kitti" / "velodyne" / "000003.pcd").mkdir()
+    count, frames = P.open_input(tmp_path / "kitti")
+    frames = list(frames)
+    assert count == 4 and [f.frame_id for f in frames] == ["000000", "000001", "000002", "000003"]
+    assert [f.error is None for f in frames] == [True, True, False, False]
+    assert re.fullmatch(r".*000002\.bin: a broken or looping symlink, not a cloud file",
+                        str(frames[2].error))  # fmt: skip
+    assert re.fullmatch(r".*000003\.pcd: a folder, not a cloud file", str(frames[3].error))
     kitti.write_points(tmp_path / "SCAN.BIN", scans[0])
     count, frames = P.open_input(tmp_path / "SCAN.BIN")
     (frame,) = list(frames)

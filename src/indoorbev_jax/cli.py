@@ -443,7 +443,8 @@ def build_parser() -> argparse.ArgumentParser:
     pred.add_argument("model", help="run directory or exported model file (.msgpack)")
     pred.add_argument(
         "input",
-        help=".bin, .pcd or .npy file, a folder of them, KITTI-style folder or ROS 2 bag folder",
+        help=".bin, .pcd or .npy file, a folder of them, KITTI-style folder, ROS 2 bag folder, "
+        "or a lone bag storage file (.mcap, .db3)",
     )
     pred.add_argument("--out", required=True, help="output folder (label_2, mask_2, pictures)")
     pred.add_argument(

@@ -240,6 +240,11 @@ class Frame:
 
 def _file_frames(paths: list[Path]) -> Iterator[Frame]:
     for path in paths:
+        if not path.is_file():  # named like a cloud: a user's scan must not vanish unsaid
+            kind = "a folder" if path.is_dir() else "a broken or looping symlink"
+            error = kitti.DatasetError(f"{path}: {kind}, not a cloud file")
+            yield Frame(path.stem, None, error=error)
+            continue
         try:
             yield Frame(path.stem, read_cloud(path))
         except (ValueError, OSError) as e:  # DatasetError, or an unreadable file
@@ -252,11 +257,12 @@ def _file_frames(paths: list[Path]) -> Iterator[Frame]:
 
 
 def _cloud_files(folder: Path) -> list[Path]:
-    """The ``.bin`` / ``.pcd`` / ``.npy`` files of a folder, by name; two of one stem would
-    write the same outputs, so they are refused."""
+    """The ``.bin`` / ``.pcd`` / ``.npy`` entries of a folder, by name; two of one stem would
+    write the same outputs, so they are refused. Entries so named that are no file (a folder,
+    a dangling symlink) are kept: ``_file_frames`` makes them bad frames, named."""
     files = sorted(
         p for p in folder.iterdir()
-        if p.is_file() and p.suffix.lower() in CLOUD_SUFFIXES and not kitti.is_hidden(p)
+        if p.suffix.lower() in CLOUD_SUFFIXES and not kitti.is_hidden(p)
     )  # fmt: skip
     stems: dict[str, Path] = {}
     for p in files:
@@ -313,7 +319,7 @@ def open_input(path: str | os.PathLike, topic: str | None = None) -> tuple[int, 
         return len(files), _file_frames(files)
     raise ValueError(
         f"{path}: expected a .bin, .pcd or .npy file, a folder of them, a KITTI-style folder "
-        "with velodyne/, or a ROS 2 bag folder with metadata.yaml"
+        "with velodyne/, a ROS 2 bag folder with metadata.yaml, or a lone .mcap / .db3 file"
     )
 
 
@@ -515,6 +521,13 @@ def model_fingerprint(config: Config, params: Any) -> str:
     return digest.hexdigest()
 
 
+def _remove_stale_temporaries(out: Path) -> None:
+    """A kill -9 mid-write leaves atomic_write's hidden temporary file; no run reads it."""
+    stale = [p for d, ext in OUTPUT_DIRS.items() for p in (out / d).glob(f".*{ext}.*.tmp")]
+    for path in stale + list(out.glob(".predict.json.*.tmp")):
+        path.unlink(missing_ok=True)
+
+
 def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
     """Checks that ``out`` holds nothing but this run's outputs (then they are resumed), or
     clears the earlier outputs when ``overwrite``; writes ``predict.json``. A
@@ -531,6 +544,7 @@ def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
         if "model" in saved:
             saved.setdefault("boxes", "head")  # runs before the entry wrote the head's boxes
         if saved == run:
+            _remove_stale_temporaries(out)
             return
         # A run stopped before its first frame (Ctrl-C while compiling) left only its
         # predict.json: nothing to mix, so another run's settings may take the folder.
@@ -550,6 +564,7 @@ def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
     if overwrite:
         for path in ours:
             path.unlink()
+    _remove_stale_temporaries(out)
     kitti.atomic_write(manifest, lambda p: p.write_text(json.dumps(run, indent=1) + "\n"))
 
 

@@ -167,6 +167,28 @@ def test_npy_arrays_and_structured_arrays(tmp_path):
             clouds.read_cloud(tmp_path / f"{name}.npy")
 
 
+def test_files_that_are_no_npy_are_named_as_such(tmp_path, recwarn):
+    """A text file or an .npz named .npy: numpy called the first "pickled data" (with a hint
+    to unpickle it) and the second an AttributeError. An ASCII PCD whose header promises
+    points but holds no row is named without numpy's warning about a BytesIO."""
+    (tmp_path / "t.npy").write_text("1 2 3 4\n")
+    np.savez(tmp_path / "z.npz", POINTS)
+    (tmp_path / "z.npz").rename(tmp_path / "z.npy")
+    (tmp_path / "e.npy").write_bytes(b"")
+    for name, what in (("t", "no .npy file"), ("z", "an .npz archive"), ("e", "no .npy file")):
+        message = rf"{name}\.npy: {what} \(no NUMPY header\); expected one array saved with"
+        with pytest.raises(kitti.DatasetError, match=message):
+            clouds.read_cloud(tmp_path / f"{name}.npy")
+    with pytest.raises(kitti.DatasetError, match=r"missing\.npy: not a readable \.npy array"):
+        clouds.read_npy(tmp_path / "missing.npy")
+    _write_pcd(tmp_path / "r.pcd", POINTS, "ascii")
+    text = (tmp_path / "r.pcd").read_bytes()
+    (tmp_path / "r.pcd").write_bytes(text[: text.index(b"DATA ascii\n") + 11])
+    with pytest.raises(kitti.DatasetError, match=r"r\.pcd: DATA ascii holds 0 points"):
+        clouds.read_pcd(tmp_path / "r.pcd")
+    assert not [str(w.message) for w in recwarn]
+
+
 def test_predict_input_reads_pcd_and_npy_files_and_folders(tmp_path):
     (tmp_path / "scans").mkdir()
     _write_pcd(tmp_path / "scans" / "000001.pcd", POINTS)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import io
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +68,16 @@ def _columns(path: Path, names: list[str], get) -> np.ndarray:
 def read_npy(path: str | os.PathLike) -> np.ndarray:
     """float32 [N, 4] from a ``.npy`` array (see the module docstring)."""
     path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(6)
+    except OSError as e:
+        raise DatasetError(f"{path}: not a readable .npy array ({e})") from e
+    if magic != b"\x93NUMPY":  # np.load would call text "pickled data" and an .npz a dict
+        what = "an .npz archive" if magic.startswith(b"PK") else "no .npy file"
+        raise DatasetError(
+            f"{path}: {what} (no NUMPY header); expected one array saved with np.save"
+        )
     try:
         arr = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as e:
@@ -190,7 +201,9 @@ def _read_pcd_ascii(
     if n == 0 and not text.strip():
         return _columns(path, names, lambda f: np.zeros(0))
     try:
-        values = np.loadtxt(io.BytesIO(text), dtype=np.float64, ndmin=2)
+        with warnings.catch_warnings():  # no rows: the shape check below names the file
+            warnings.simplefilter("ignore", UserWarning)
+            values = np.loadtxt(io.BytesIO(text), dtype=np.float64, ndmin=2)
     except ValueError as e:
         raise DatasetError(_bad_ascii_row(path, text, width, first_line) or f"{path}: {e}") from e
     if values.size == 0:
