@@ -35,7 +35,7 @@ from indoorbev_sim import scenes as scenes_mod
 from indoorbev_jax.config import Config, SimConfig
 from indoorbev_jax.data.rasterize import instance_ids_from_masks
 from indoorbev_jax.geometry import in_workspace
-from indoorbev_jax.types import Batch, Targets
+from indoorbev_jax.types import Batch, Targets, float32_defaults
 
 
 @struct.dataclass
@@ -160,6 +160,7 @@ def mount_rotation(sim: SimConfig, scene: scenes_mod.Scene) -> jax.Array | None:
     return jnp.asarray(mount.rotation(), jnp.float32) if mount.rotated else None
 
 
+@float32_defaults
 def simulate(
     key: jax.Array, config: Config, scene: scenes_mod.Scene, time: jax.Array, frame_index
 ) -> tuple[Batch, FrameInfo]:
@@ -292,6 +293,7 @@ def simulate(
     return Batch(points=points, point_valid=pvalid, targets=targets), info
 
 
+@float32_defaults
 def sample_scenes(key: jax.Array, config: Config, num_scenes: int, split="train"):
     """``num_scenes`` scenes (``Scene`` batched over a leading axis).
 
@@ -302,6 +304,7 @@ def sample_scenes(key: jax.Array, config: Config, num_scenes: int, split="train"
     return jax.vmap(lambda k: scenes_mod.sample_scene(k, config, test))(keys)
 
 
+@float32_defaults
 def generate_batch_with_info(
     key: jax.Array, config: Config, split: str = "train", batch_size: int | None = None
 ) -> tuple[Batch, FrameInfo]:
@@ -317,6 +320,7 @@ def generate_batch_with_info(
     return simulate(k_noise, config, scene, time, frame_index)
 
 
+@float32_defaults
 def draw_frames(key: jax.Array, config: Config, split="train", batch_size: int | None = None):
     """What ``generate_batch_with_info`` simulates for this key, before any ray is cast.
 
@@ -332,6 +336,7 @@ def draw_frames(key: jax.Array, config: Config, split="train", batch_size: int |
     return scene, time, frame_index, k_noise
 
 
+@float32_defaults
 def generate_batch(key: jax.Array, config: Config, split: str = "train") -> Batch:
     """B = ``config.train.batch_size`` labelled frames as the model and loss consume them.
 
@@ -341,6 +346,7 @@ def generate_batch(key: jax.Array, config: Config, split: str = "train") -> Batc
     return generate_batch_with_info(key, config, split)[0]
 
 
+@float32_defaults
 def generate_sequences(
     key: jax.Array, config: Config, num_scenes: int, split: str = "train"
 ) -> tuple[Batch, FrameInfo]:

@@ -225,6 +225,23 @@ def test_full_chain_is_deterministic_and_vmaps():
         np.testing.assert_array_equal(one.targets.masks, a.targets.masks[i])
 
 
+def test_augmentation_is_the_same_under_x64():
+    """With ``jax_enable_x64`` on, the draws were float64: another augmentation for the same
+    key, and box noise added a float64 shift into float32 boxes (a JAX FutureWarning, an
+    error in later JAX releases)."""
+    import warnings
+
+    cfg = dataclasses.replace(CFG.augment, box_noise_prob=1.0)
+    frame, key = make_frame(0), jax.random.key(11)
+    plain = jax.jit(aug.augment, static_argnums=(2, 3))(key, frame, GRID, cfg)
+    with jax.enable_x64(True), warnings.catch_warnings():
+        warnings.simplefilter("error", FutureWarning)
+        x64 = jax.jit(aug.augment, static_argnums=(2, 3))(key, frame, GRID, cfg)
+    for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(x64), strict=True):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+
+
 def _move_object_0(frame, shift):
     """``frame`` with object 0 and its points moved by ``shift`` (x, y, z), its targets
     rebuilt from the labels (``make_targets``, as a dataset's)."""

@@ -17,7 +17,7 @@ from flax import struct
 from indoorbev_jax.config import AugmentConfig, GridConfig
 from indoorbev_jax.data.rasterize import instance_ids_from_masks
 from indoorbev_jax.geometry import cell_centers, cell_index, in_workspace, on_grid, wrap_angle
-from indoorbev_jax.types import Batch, Targets
+from indoorbev_jax.types import Batch, Targets, float32_defaults
 
 # Points this close outside a box still belong to it (lidar hits lie on its surface).
 BOX_MARGIN = 0.03
@@ -449,6 +449,7 @@ def gt_sampling(
     return _finish(points, valid, t, grid)
 
 
+@float32_defaults
 def augment(
     key: jax.Array,
     frame: Batch,
@@ -501,6 +502,7 @@ def drop_lost_objects(
     return _finish(frame.points, frame.point_valid, t.replace(valid=valid), grid)
 
 
+@float32_defaults
 def augment_batch(
     key: jax.Array,
     batch: Batch,

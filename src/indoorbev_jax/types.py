@@ -16,10 +16,24 @@ Boxes (DESIGN sections 2-3), all in the lidar frame (x forward, y left, z up, me
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import functools
+from collections.abc import Callable, Mapping
 
 import jax
 from flax import struct
+
+
+def float32_defaults(fn: Callable) -> Callable:
+    """Runs ``fn`` (traced or not) with JAX's 32-bit defaults even when the caller turned
+    ``jax_enable_x64`` on: random float draws stay float32, so a key gives the same scenes
+    and augmentations (and the float32 arrays these containers document) either way."""
+
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        with jax.enable_x64(False):
+            return fn(*args, **kwargs)
+
+    return wrapped
 
 
 class _ByName:

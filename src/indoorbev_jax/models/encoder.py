@@ -115,7 +115,7 @@ class AFPCCN(nn.Module):
 
         flat = feats.reshape(b * n, feats.shape[-1])  # not -1: N may be 0
         bev = jax.ops.segment_max(flat, cell, n_cells)  # [B*H*W, C]
-        empty = self.param("empty", nn.initializers.normal(0.02), (self.channels,))
+        empty = self.param("empty", nn.initializers.normal(0.02), (self.channels,), jnp.float32)
         bev = jnp.where((count > 0)[:, None], bev, empty[None, :])
         bev = bev.reshape(b, h, w, self.channels)  # [B, H, W, C]
         self.sow("intermediates", "bev_raw", bev)

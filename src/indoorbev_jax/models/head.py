@@ -461,7 +461,9 @@ class SimpleMaskHead(nn.Module):
             anchor_x, anchor_y = xs[cells % w], ys[cells // w]  # [B, Q] each
             anchor = jnp.stack([anchor_x, anchor_y, jnp.zeros_like(anchor_x)], -1)  # float32
         else:
-            query = self.param("query_embed", nn.initializers.normal(1.0), (cfg.num_queries, c))
+            query = self.param(
+                "query_embed", nn.initializers.normal(1.0), (cfg.num_queries, c), jnp.float32
+            )
             t = jnp.broadcast_to(query.astype(self.dtype), (b, cfg.num_queries, c))
             if cfg.semantic_head:
                 self._seed_logits(f_proj)  # trained by the seed loss only

@@ -147,6 +147,7 @@ class WindowAttention(nn.Module):
             "relative_position_bias",
             nn.initializers.truncated_normal(0.02),
             ((2 * ws - 1) ** 2, h),
+            jnp.float32,  # float32 under jax_enable_x64 too: checkpoints keep one layout
         )
         idx = relative_position_index(ws).reshape(-1)
         bias = jnp.take(table, idx, axis=0).reshape(t, t, h).transpose(2, 0, 1)  # [h, T, T]
