@@ -109,3 +109,61 @@ def test_scores_closer_than_float32_keep_the_files_ranking(tmp_path):
     path.write_text(text)
     res = evaluate_folders(tmp_path / "gt", tmp_path / "pred", CFG)
     assert res["ap"] == {0.25: pytest.approx(1.0), 0.5: pytest.approx(1.0)}
+
+
+def test_swapped_folders_are_named_as_such(tmp_path, capsys):
+    """--gt and --pred swapped: the "ground truth" has a score column. The error names that
+    file and asks whether the folders are swapped, also when the real ground truth (read as
+    predictions) has no objects, which would otherwise pass as a frame with no detections."""
+    kitti.write_labels(tmp_path / "gt/label_2/a.txt", _labels([[0.0, 0.0], [2.0, 2.0]]), NAMES)
+    kitti.write_labels(tmp_path / "gt/label_2/b.txt", _labels([]), NAMES)
+    kitti.write_labels(tmp_path / "pred/label_2/a.txt", _labels([[0.0, 0.0]], [0.9]), NAMES)
+    kitti.write_labels(tmp_path / "pred/label_2/b.txt", _labels([[1.0, 1.0]], [0.8]), NAMES)
+    argv = ["eval", "--gt", str(tmp_path / "pred"), "--pred", str(tmp_path / "gt"), "--preset",
+            "tiny"]  # fmt: skip
+    assert main(argv) == 1
+    swapped = tmp_path / "pred/label_2/a.txt"
+    message = f"error: {swapped}: ground truth with a score column (16th); are the ground truth"
+    assert message in capsys.readouterr().err
+    # Frame b alone: its true ground truth, read as predictions, holds no object.
+    (tmp_path / "pred/only_b.txt").write_text("b\n")
+    b_txt = re.escape(f"{tmp_path / 'pred/label_2/b.txt'}: ground truth with a score column")
+    with pytest.raises(kitti.DatasetError, match=f"^{b_txt}"):
+        evaluate_folders(tmp_path / "pred", tmp_path / "gt", CFG, split="only_b")
+
+
+def test_prediction_files_without_ground_truth_are_noted(tmp_path, capsys):
+    """Without --split the frames are the ground truth's: a prediction file with no ground
+    truth is not evaluated, and the command says so (with --split other frames' predictions
+    are expected, so it does not)."""
+    kitti.write_labels(tmp_path / "gt/label_2/a.txt", _labels([[0.0, 0.0]]), NAMES)
+    (tmp_path / "gt/val.txt").write_text("a\n")
+    for frame in ("a", "b", "c"):
+        path = tmp_path / f"pred/label_2/{frame}.txt"
+        kitti.write_labels(path, _labels([[0.0, 0.0]], [0.9]), NAMES)
+    argv = ["eval", "--gt", str(tmp_path / "gt"), "--pred", str(tmp_path / "pred"), "--preset",
+            "tiny"]  # fmt: skip
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "note: 2 prediction files have no ground truth and are not evaluated, e.g. b" in out
+    assert "frames: 1" in out
+    assert main([*argv, "--split", "val"]) == 0
+    assert "prediction files have no ground truth" not in capsys.readouterr().out
+
+
+def test_rasterised_boxes_on_a_grid_with_a_cell_on_the_origin(tmp_path):
+    """Without mask_2 the boxes are padded to 16 with all-zero boxes, which must stay out of
+    the raster: on a 41 x 41 grid of 0.25 m cells over -5.125..5.125 m a cell is centred on
+    the origin, where a zero box would put a padding id past the one object on the map (refused
+    by the metrics). One chair found exactly: PQ and mIoU are 1, AP 1 - 2**-53 (pycocotools'
+    precision tp / (tp + fp + 2**-52), as in test_metrics)."""
+    import dataclasses
+
+    grid = dataclasses.replace(CFG.grid, x_range=(-5.125, 5.125), y_range=(-5.125, 5.125))
+    config = dataclasses.replace(CFG, grid=grid)
+    assert grid.shape == (41, 41)
+    kitti.write_labels(tmp_path / "gt/label_2/a.txt", _labels([[2.0, 2.0]]), NAMES)
+    kitti.write_labels(tmp_path / "pred/label_2/a.txt", _labels([[2.0, 2.0]], [0.9]), NAMES)
+    res = evaluate_folders(tmp_path / "gt", tmp_path / "pred", config)
+    assert res["ap"] == {0.25: 1 - 2**-53, 0.5: 1 - 2**-53}
+    assert (res["pq"], res["miou"], res["semantic_miou"]) == (1.0, 1.0, 1.0)

@@ -10,7 +10,7 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 from indoorbev_jax.config import LossConfig
-from indoorbev_jax.losses import TERMS, cost_matrix, set_loss
+from indoorbev_jax.losses import TERMS, _loss_mask_points, cost_matrix, set_loss
 from indoorbev_jax.types import Predictions, Targets
 
 L, B, Q, K, M, H, W = 2, 4, 6, 10, 4, 16, 16
@@ -165,6 +165,25 @@ def test_loss_matches_per_sample_reference(batch):
     assert parts["num_targets"] == targets.valid.sum()
     weighted = sum(WEIGHTS[t] * parts[t] for t in TERMS)
     np.testing.assert_allclose(total, weighted, rtol=1e-6)
+
+
+def test_aux_loss_off_scores_the_last_layer_and_a_config_given_as_weights_is_the_config(batch):
+    """set_loss(p, t, cfg) with cfg.aux_loss = False scores the last decoder layer only: its
+    terms are the aux run's `_final` parts, which test_loss_matches_per_sample_reference checks
+    against the numpy/scipy loop. Two rules meet here: a LossConfig given as `weights` stands
+    for config too (the default config, aux_loss on, summed both layers instead), and
+    aux_loss=False keeps the last layer (the first one was scored instead)."""
+    preds, targets = batch
+    _, aux_parts, _ = _loss(preds, targets)
+    last_only = dataclasses.replace(CFG, aux_loss=False)
+    total, parts = jax.jit(lambda p, t: set_loss(p, t, last_only))(preds, targets)
+    for t in TERMS:
+        np.testing.assert_allclose(parts[t], aux_parts[t + "_final"], rtol=1e-5, atol=1e-7)
+    expected = sum(WEIGHTS[t] * aux_parts[t + "_final"] for t in TERMS)
+    np.testing.assert_allclose(total, expected, rtol=1e-5)
+    # The config's point sampling, too: it needs a key (raised before any work).
+    with pytest.raises(ValueError, match="num_mask_points = 64 samples mask cells"):
+        set_loss(preds, targets, SAMPLED)
 
 
 def test_predictions_read_by_name_and_given_as_a_dict(batch):
@@ -455,6 +474,46 @@ def test_sampled_cost_estimates_dense_cost(batch):
     sampled = np.asarray(_cost(preds, targets, config=many, key=jax.random.key(1)))
     np.testing.assert_allclose(sampled, dense, rtol=0.02, atol=0.02)
     assert not np.allclose(sampled, dense, rtol=1e-5, atol=1e-5)  # it did sample
+
+
+def test_sampled_costs_draw_cells_per_layer_and_frame(batch):
+    """The module docstring: cost cells are drawn per (layer, frame). Two identical decoder
+    layers, and two identical frames, must get different sampled costs (one draw shared by
+    the layers gave them equal costs, so every layer was matched on the same cells)."""
+    preds, targets = batch
+    key = jax.random.key(4)
+    same_layers = jax.tree.map(lambda x: np.concatenate([x[:1], x[:1]]), preds)
+    cost = np.asarray(_cost(same_layers, targets, config=SAMPLED, key=key))
+    dense = np.asarray(_cost(same_layers, targets, config=CFG))
+    np.testing.assert_array_equal(dense[0], dense[1])  # the layers differ only by their cells
+    assert not np.allclose(cost[0], cost[1], rtol=1e-3, atol=1e-3)
+    same_frames = jax.tree.map(lambda x: np.concatenate([x[:, 1:2], x[:, 1:]], 1), preds)
+    same_targets = dataclasses.replace(
+        targets, **{f: np.concatenate([getattr(targets, f)[1:2], getattr(targets, f)[1:]])
+                    for f in ("classes", "dims", "pos", "yaw", "valid", "masks")}
+    )  # fmt: skip
+    cost = np.asarray(_cost(same_frames, same_targets, config=SAMPLED, key=key))
+    assert not np.allclose(cost[:, 0], cost[:, 1], rtol=1e-3, atol=1e-3)
+
+
+def test_mask_loss_points_are_three_quarters_the_most_uncertain():
+    """Mask2Former's importance sampling (module docstring): of P cells per matched pair,
+    0.75 P are the most uncertain (least |logit|) of 3 P uniform candidates, the rest uniform.
+    Half the map has |logit| 0.01, half 20: about 1.5 P candidates are uncertain, so the 0.75 P
+    important cells all are, and the P / 4 uniform ones add about P / 8: at least 0.75 P
+    uncertain cells per pair, about 0.875 P on average. (Sampling the most certain cells gave
+    about P / 8; a quarter important, about 0.625 P.)"""
+    lyr, b, q, m, side, p = 1, 2, 3, 3, 16, 64
+    logit = np.where(np.arange(side) < side // 2, 0.01, 20.0) * np.ones((side, 1))
+    logits = np.broadcast_to(logit.ravel(), (lyr, b, q, side * side)).astype(np.float32)
+    targets = jnp.zeros((b, m, side * side), bool)
+    query_idx = jnp.asarray(np.broadcast_to(np.arange(m, dtype=np.int32), (lyr, b, m)))
+    x, t = _loss_mask_points(jnp.asarray(logits), targets, query_idx, p, jax.random.key(0))
+    assert x.shape == t.shape == (lyr, b, m, p)
+    uncertain = (np.abs(np.asarray(x)) < 1).sum(-1)  # [L, B, M]
+    assert uncertain.min() >= 0.75 * p
+    assert uncertain.sum() < uncertain.size * p  # the uniform quarter also finds certain cells
+    assert abs(uncertain.mean() / p - 0.875) < 0.05
 
 
 def test_sampled_mask_gradient_touches_at_most_p_cells(batch):

@@ -101,6 +101,23 @@ def test_clean_cost_scales_only_frames_past_the_bound():
     np.testing.assert_array_equal(cleaned[1], [[4e6 / scale, 1.0 / scale], [COST_CAP, -COST_CAP]])
 
 
+def test_clean_cost_scale_is_set_by_valid_targets_only():
+    """clean_cost's docstring: only valid targets' finite entries set a frame's scale. A
+    padded slot holding 1e9 (meaningless) left the valid entries divided by 2**16 (1.0 became
+    1.5e-5); the frame is under the bound COST_CAP / (2 (M + 1)), so nothing is rescaled, the
+    padded entry included. Once a valid entry is past the bound, the padded one is rescaled
+    with its frame; with valid=None every entry counts."""
+    cost = jnp.array([[[1.0, 1e9], [2.0, 3.0]]])
+    bound = COST_CAP / (2 * 3)
+    np.testing.assert_array_equal(clean_cost(cost, jnp.array([[True, False]])), cost)
+    scale = 2.0 ** np.ceil(np.log2(1e9 / bound))  # least power of two taking 1e9 under it
+    np.testing.assert_array_equal(clean_cost(cost), np.asarray(cost) / scale)
+    big = cost.at[0, 1, 0].set(4e6)
+    scale = 2.0 ** np.ceil(np.log2(4e6 / bound))
+    cleaned = clean_cost(big, jnp.array([[True, False]]))
+    np.testing.assert_array_equal(cleaned, np.asarray(big) / scale)
+
+
 def test_non_finite_costs_are_avoided():
     rng = np.random.default_rng(1)
     n, q, m = 200, 12, 6
@@ -124,6 +141,36 @@ def test_non_finite_costs_are_avoided():
         is_bad = ~np.isfinite(cost[i])
         if i < n // 2 and _scipy_total(is_bad.astype(float), valid[i]) == 0:
             assert not is_bad[query_idx[i][valid[i]], np.flatnonzero(valid[i])].any()
+
+
+def test_a_target_with_only_non_finite_costs_still_gets_a_free_query():
+    """match's docstring: with at most Q valid targets each still gets its query. A valid
+    target whose every cost is NaN or +Inf (a diverging loss term) costs COST_CAP on every
+    query, so it must still take a query rather than its dummy column: the dummies must cost
+    more than COST_CAP (at 0.5 COST_CAP it got -1). The total equals scipy's on the cleaned
+    costs."""
+    rng = np.random.default_rng(9)
+    q, m = 5, 3
+    cost = rng.random((6, q, m)).astype(np.float32)
+    cost[0, :, 1] = np.nan
+    cost[1, :, 0] = np.inf
+    cost[2, :, 2] = np.nan
+    cost[2, :, 0] = np.inf  # two such targets in one frame
+    cost[3, :, :] = np.nan  # every target
+    valid = np.ones((6, m), bool)
+    valid[4:, 1] = False  # with a padded slot beside it
+    cost[4, :, 0] = np.nan
+    cost[5, :, 2] = np.inf
+    query_idx = np.asarray(_match(jnp.asarray(cost), jnp.asarray(valid))[0])
+    cleaned = np.asarray(clean_cost(jnp.asarray(cost), jnp.asarray(valid)))
+    for b in range(len(cost)):
+        got = query_idx[b, valid[b]]
+        assert ((got >= 0) & (got < q)).all() and len(set(got)) == len(got)
+        np.testing.assert_allclose(
+            _our_total(cleaned[b], valid[b], query_idx[b]),
+            _scipy_total(cleaned[b], valid[b]),
+            rtol=1e-6,
+        )
 
 
 def test_gradient_is_finite_for_nan_costs():

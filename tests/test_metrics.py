@@ -207,6 +207,48 @@ def test_mask_ap_max_dets_truncation_equals_pycocotools():
     assert mask_ap(gts, dets, max_dets=110)["ap"][0.5] > ours["ap"][0.5]
 
 
+def test_mask_ap_equals_pycocotools_bit_for_bit():
+    """mask_ap is pycocotools' number exactly, not only to 1e-6: pycocotools divides by
+    tp + fp + np.spacing(1), so a class whose first detection is a hit has precision
+    1 / (1 + 2**-52) = 1 - 2**-53 there, and one exact detection scores 0.9999999999999999 (the
+    mask_ap docstring's example), a difference the abs=1e-6 comparisons elsewhere cannot see."""
+    gts, dets = random_frames(3, num_frames=30)
+    ref_ap, ref_per_class = coco_reference(gts, dets)
+    ours = mask_ap(gts, dets)
+    assert ours["ap"] == ref_ap
+    assert ours["per_class"] == ref_per_class
+    one = (np.ones((1, 4, 4), bool), np.array([0]))
+    exact = (np.ones((1, 4, 4), bool), np.array([0]), np.array([0.9]))
+    assert mask_ap([one], [exact])["ap"] == coco_reference([one], [exact])[0]
+    assert mask_ap([one], [exact])["ap"] == {0.25: 1 - 2**-53, 0.5: 1 - 2**-53}
+
+
+def test_max_dets_boundary_is_per_frame_and_class_for_ap_per_frame_for_confusion():
+    """pycocotools keeps the max_dets = 100 best detections per frame AND class for AP, and
+    per frame for the class-agnostic confusion (every object in one category). (a) 100 false
+    positives outscore the only hit, the 101st: AP 0 and the object missed, exactly at the
+    boundary (a `<=` let it in). (b) 60 higher-scored class-1 false positives, then 50 class-0
+    detections whose last one hits: the 110th of the frame but the 50th of its class, so AP
+    counts it (recall 1 at precision 1/50) and the agnostic confusion does not."""
+    h = w = 12
+    gm = np.zeros((1, h, w), bool)
+    gm[0, 0:2, 0:4] = True
+    fp = np.zeros((100, h, w), bool)
+    fp[:, 6:, 6:] = True  # never overlaps the ground truth
+    gts = [(gm, np.zeros(1, np.int64))]
+    last_hit = (np.concatenate([fp, gm]), np.zeros(101, np.int64),
+                np.concatenate([np.linspace(0.9, 0.5, 100), [0.1]]))  # fmt: skip
+    by_class = (np.concatenate([fp[:60], fp[:49], gm]), np.repeat([1, 0], [60, 50]),
+                np.concatenate([np.full(60, 0.95), np.linspace(0.9, 0.5, 49), [0.1]]))  # fmt: skip
+    for dets, ap50 in (([last_hit], 0.0), ([by_class], 1 / 50)):
+        ours = mask_ap(gts, dets)
+        assert ours["ap"] == coco_reference(gts, dets)[0]
+        assert ours["ap"][0.5] == pytest.approx(ap50)
+        confusion = class_confusion(gts, dets, 0.5)
+        np.testing.assert_array_equal(confusion, coco_confusion_reference(gts, dets, 0.5))
+        assert confusion[0, NUM_CLASSES] == 1  # missed in both: past the 100th of the frame
+
+
 def test_mask_ap_iou_tie_goes_to_the_last_ground_truth():
     # Detection A has IoU 1/3 with both GTs; pycocotools gives it the later GT (its "<" test),
     # so the lower-scored exact hit B on that GT becomes a false positive.
@@ -285,6 +327,20 @@ def test_mask_ap_rejects_bad_input():
         mask_ap([(m, np.array([0]))], [(m, np.array([9]), np.array([0.5]))])
     with pytest.raises(ValueError, match="frame 0"):
         mask_ap([(m, np.array([0]))], [(np.ones((1, 3, 4), bool), np.array([0]), np.ones(1))])
+
+
+def test_iou_thresholds_above_1_are_refused():
+    """An IoU threshold lies in [0, 1]: above 1 no pair can match, and percentages (25, 50)
+    given by mistake were accepted by mask_ap and the Evaluator (mask_ap scored 1.5 as AP
+    0.9999999999999999, pycocotools' cap at 1 - 1e-10 turning it into an exact-match test)."""
+    g = (np.ones((1, 4, 4), bool), np.array([0]))
+    d = (np.ones((1, 4, 4), bool), np.array([0]), np.array([0.9]))
+    for bad in ((1.5,), (25, 50), (0.5, 1.0 + 1e-9), (-0.25,), (math.nan,), ()):
+        with pytest.raises(ValueError, match=r"iou_thresholds: expected values in \[0, 1\]"):
+            mask_ap([g], [d], bad)
+        with pytest.raises(ValueError, match=r"iou_thresholds: expected values in \[0, 1\]"):
+            Evaluator(iou_thresholds=bad)
+    assert mask_ap([g], [d], (0.0, 1.0))["ap"] == coco_reference([g], [d], (0.0, 1.0))[0]
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -475,6 +531,26 @@ def test_paper_miou_ties_go_to_the_lower_ids_and_its_threshold_is_above_0():
     tiny = paper_miou([(gt, np.array([9, 0, 0]))], [(disjoint, np.array([9, 0]))],
                       iou_threshold=1e-9)  # fmt: skip
     assert tiny["matched"][0] == 0 and math.isnan(tiny["miou"])
+
+
+def test_paper_miou_takes_the_highest_iou_first_and_the_evaluator_shares_its_threshold():
+    """One row of 10 cells, one class-0 GT; predicted segment 1 covers 4 of its cells (IoU
+    0.4), segment 2 another 3 (IoU 0.3). Highest IoU first (METRICS.md) matches segment 1: mIoU
+    0.4 (lowest first gave 0.3). The Evaluator's default match IoU is paper_miou's 0.25, so it
+    reports the same 0.4 (at 0.5 nothing matched: NaN)."""
+    gid = np.ones((1, 10), np.int32)
+    pid = np.zeros((1, 10), np.int32)
+    pid[0, 0:4], pid[0, 4:7] = 1, 2
+    gt, pred = (gid, np.array([NUM_CLASSES, 0])), (pid, np.array([NUM_CLASSES, 0, 0]))
+    out = paper_miou([gt], [pred])
+    assert out["miou"] == pytest.approx(0.4) and out["matched"][0] == 1
+    assert out["miou"] == pytest.approx(panoptic_reference([gt], [pred])["miou"])
+    ev = Evaluator()
+    masks = pid[None] == np.arange(1, 3)[:, None, None]
+    ev.add_frame((gid[None] == 1, np.array([0])), (masks, np.array([0, 0]), np.array([0.9, 0.8])),
+                 gt, pred)  # fmt: skip
+    assert ev.compute()["miou"] == out["miou"]
+    assert ev.compute()["per_class"][CLASS_NAMES[0]]["miou"] == pytest.approx(0.4)
 
 
 def test_panoptic_edge_cases():
