@@ -178,6 +178,7 @@ def simulate(
     """
     from indoorbev_sim import lidar, sensor
 
+    time = jnp.asarray(time, jnp.float32)  # a float64 time under x64: FrameInfo.time float32
     sim = config.sim
     tpl = scenes_mod.template_for(config)
     m, n = config.data.max_objects, config.data.max_points

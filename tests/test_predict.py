@@ -2,9 +2,11 @@
 
 import dataclasses
 import json
+import os
 import re
 import shutil
 import sys
+import time
 from pathlib import Path
 
 import jax
@@ -627,8 +629,18 @@ def test_predict_resumes_and_refuses_another_runs_outputs(model_file, tmp_path, 
     (out / "label_2" / "000001.txt").unlink()
     (out / "pictures" / "000002.png").unlink()
     # ... and a kill -9 inside atomic_write left its hidden temporary file: removed.
-    (out / "mask_2" / ".000001.png.x8k2j3.tmp").write_bytes(b"\x89PNG")
+    # A minute old: a second run's write in flight is not touched, nor a user's hidden file.
+    stale = out / "mask_2" / ".000001.png.x8k2j3_a.tmp"
+    fresh = out / "label_2" / ".000001.txt.k3j4k5l6.tmp"
+    keep = out / "label_2" / ".notes.tmp"
+    for path in (stale, fresh, keep):
+        path.write_bytes(b"\x89PNG")
+    os.utime(stale, (time.time() - 120,) * 2)
+    os.utime(keep, (time.time() - 120,) * 2)
     again = P.predict(model_file, data, out, verbose=False)
+    assert not stale.exists() and fresh.exists() and keep.exists()
+    fresh.unlink()
+    keep.unlink()
     assert again["resumed_frames"] == 1 and again["objects"] == first["objects"]
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*.*")} == files
     assert not list(out.rglob("*.tmp"))
@@ -801,10 +813,12 @@ def test_input_listing_skips_hidden_files_and_reads_upper_case_bin(tmp_path):
     # (a scan on an unmounted disk) or a folder was left out without a word.
     (tmp_path / "kitti" / "velodyne" / "000002.bin").symlink_to(tmp_path / "unmounted.bin")
     (tmp_path / "kitti" / "velodyne" / "000003.pcd").mkdir()
+    os.mkfifo(tmp_path / "kitti" / "velodyne" / "000004.npy")  # read, it would block
     count, frames = P.open_input(tmp_path / "kitti")
     frames = list(frames)
-    assert count == 4 and [f.frame_id for f in frames] == ["000000", "000001", "000002", "000003"]
-    assert [f.error is None for f in frames] == [True, True, False, False]
+    assert count == 5 and [f.frame_id for f in frames] == [f"{k:06d}" for k in range(5)]
+    assert [f.error is None for f in frames] == [True, True, False, False, False]
+    assert str(frames[4].error).endswith("000004.npy: a pipe, socket or device, not a cloud file")
     assert re.fullmatch(r".*000002\.bin: a broken or looping symlink, not a cloud file",
                         str(frames[2].error))  # fmt: skip
     assert re.fullmatch(r".*000003\.pcd: a folder, not a cloud file", str(frames[3].error))

@@ -72,10 +72,11 @@ def _decode(result):
 
 
 def _two_detections():
-    """(labels, the detections message of them, as a subscriber receives it)."""
+    """(labels, the detections message of them, as a subscriber receives it); scores a
+    float32 field holds exactly."""
     labels = kitti.ObjectLabels(
         classes=[1, 6], dims=[[2.0, 1.0, 0.8], [0.5, 0.5, 1.7]], pos=[[1.0, 2.0, 0.4],
-        [-1.0, 0.5, 0.85]], yaw=[math.pi / 2, 0.3], occlusion=[0, 0], scores=[0.9, 0.25],
+        [-1.0, 0.5, 0.85]], yaw=[math.pi / 2, 0.3], occlusion=[0, 0], scores=[0.5, 0.25],
     )  # fmt: skip
     raw = TS.serialize_cdr(M.detections_msg(TS, labels, 123, "base"), POINTCLOUD2)
     return labels, TS.deserialize_cdr(raw, POINTCLOUD2)
@@ -97,7 +98,7 @@ def test_detection_messages_round_trip():
     assert (strip.ns, strip.type, len(strip.points)) == ("footprints", marker.LINE_STRIP, 5)
     assert (strip.points[0].x, strip.points[0].y) == (strip.points[4].x, strip.points[4].y)
     assert strip.points[0].z == pytest.approx(0.0)  # the floor under the box
-    assert markers[2].text == "Chair 0.90" and markers[4].text == "Person 0.25"
+    assert markers[2].text == "Chair 0.50" and markers[4].text == "Person 0.25"
 
 
 def test_detections_read_with_their_declared_fields():

@@ -5,7 +5,7 @@ the same key."""
 
 import jax
 import numpy as np
-from indoorbev_sim.generate import draw_frames
+from indoorbev_sim.generate import draw_frames, simulate
 
 from indoorbev_jax.config import Config
 from indoorbev_jax.train import init_state
@@ -37,3 +37,10 @@ def test_scene_draws_are_the_same_under_x64():
     with jax.enable_x64(True):
         drawn64 = jax.jit(draw_frames, static_argnums=(1, 2, 3))(key, CFG, "test", 2)
     _same(drawn[:3], drawn64[:3])  # scene, time, frame index (the last is the noise key)
+    # A float64 time given to simulate under x64 (FrameInfo.time stayed float64).
+    scene, time, index, noise = drawn
+    with jax.enable_x64(True):
+        time64 = jax.numpy.asarray(np.asarray(time, np.float64))
+        shapes = jax.eval_shape(lambda *a: simulate(a[0], CFG, *a[1:]), noise, scene, time64, index)
+    floats = {str(x.dtype) for x in jax.tree.leaves(shapes) if x.dtype.kind == "f"}
+    assert floats == {"float32"}
