@@ -58,6 +58,33 @@ def test_lr_schedule_warmup_then_cosine():
     assert f(60) == pytest.approx(0.5, abs=1e-6) and f(110) == pytest.approx(0.0, abs=1e-7)
 
 
+def test_lr_schedule_without_warmup_starts_at_the_full_rate():
+    """warmup_steps = 0 is allowed: the cosine starts at step 0 at the full rate. Guards against
+    the warm-up test ``step <= warmup``, which gives step 0 a rate of 0 when warmup is 0."""
+    assert float(T.lr_factor(0, 0, 100)) == 1.0
+    assert float(T.lr_factor(50, 0, 100)) == pytest.approx(0.5, abs=1e-6)
+
+
+def test_optimizer_is_global_norm_clip_then_adamw_with_the_configs_weight_decay():
+    """make_optimizer updates parameters as optax's clip_by_global_norm then adamw with the
+    config's weight_decay. One huge gradient then small ones: guards against elementwise
+    clipping (changes the update direction) and a weight_decay left at optax's default (equal to
+    the config default 1e-4, so 0.05 here)."""
+    train = dataclasses.replace(CFG.train, grad_clip_norm=1.0, weight_decay=0.05)
+    ours = T.make_optimizer(dataclasses.replace(CFG, train=train))
+    ref = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(1e-2, weight_decay=0.05))
+    params = {"w": jnp.array([1.0, -2.0, 3.0]), "b": jnp.array(0.5)}
+    s_ours, s_ref, p_ours, p_ref = ours.init(params), ref.init(params), params, params
+    for scale in (100.0, 0.01, 5.0):
+        g = {"w": jnp.array([scale, -0.1 * scale, 0.0]), "b": jnp.array(0.3 * scale)}
+        s_ours = T._set_learning_rate(s_ours, jnp.float32(1e-2))
+        u, s_ours = ours.update(g, s_ours, p_ours)
+        p_ours = optax.apply_updates(p_ours, u)
+        u, s_ref = ref.update(g, s_ref, p_ref)
+        p_ref = optax.apply_updates(p_ref, u)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), p_ours, p_ref)
+
+
 def test_non_finite_step_is_skipped(batch, step_fn):
     state = T.init_state(CFG, jax.random.key(0))
     hyper = T.Hyper.from_config(CFG)

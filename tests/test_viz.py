@@ -146,3 +146,18 @@ def test_panels_show_every_image_whole_below_its_title():
     assert (out[:, :40] == 200).all(-1).all(-1).sum() == 50  # rows wholly image a
     assert (out[:, 48:] == 100).all(-1).all(-1).sum() == 30
     assert out.shape[0] > 50 and (out[-50:, :40] == 200).all()
+
+
+def test_a_wide_grid_draws_a_point_near_its_right_edge_at_its_place():
+    """On a grid wider than tall (DESIGN 2 allows H != W) a point near the right edge is drawn at
+    its own column. Guards against clipping the column to the picture's height."""
+    grid = GridConfig(y_range=(-2.0, 2.0), cell_size=0.25)  # 16 x 40 cells
+    h, w = grid.shape
+    assert h < w
+    empty = np.asarray(viz.render_bev(np.zeros((0, 4)), None, None, grid, CLASS_NAMES))
+    x = 4.4
+    img = np.asarray(viz.render_bev(np.array([[x, 0.0, 0.0, 0.0]]), None, None, grid, CLASS_NAMES))
+    cols = np.argwhere((img != empty).any(-1))[:, 1]
+    s = viz.picture_scale(grid)
+    assert img.shape[1] == w * s and w * s >= 600
+    assert cols.min() == int((x - grid.x_range[0]) / grid.cell_size * s), cols

@@ -1,5 +1,8 @@
 """AF-PCCN scatter against a numpy per-cell max; invariance to point order and padding."""
 
+import sys
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -7,6 +10,9 @@ import pytest
 
 from indoorbev_jax.config import Config
 from indoorbev_jax.models.encoder import AFPCCN
+
+sys.path.insert(0, str(Path(__file__).parents[1]))
+from numpy_layers import dense, layer_norm  # noqa: E402
 
 FAST = {"xla_backend_optimization_level": 0}
 GRID = Config.tiny().grid  # 40 x 40 cells of 0.25 m over [-5, 5]^2, z in [-3, 3]
@@ -128,3 +134,44 @@ def test_integer_valid_masks_are_read_as_bool_and_float_ones_are_named():
         np.testing.assert_array_equal(np.asarray(_apply(params, pts, ints)[0]), want)
     with pytest.raises(ValueError, match="valid must be bool"):
         ENC.apply(params, pts, valid.astype(np.float32))
+
+
+_ln, _dense = layer_norm, dense
+
+
+def test_point_features_match_design_section_5():
+    """Per-point features equal DESIGN section 5 in numpy: X-Z branch on (x, z, dx, dz, range, i),
+    Y-Z branch on (y, z, dy, dz, range, i), dx, dy the offsets from the cell centre in cells, dz
+    from the cell's mean z, range = hypot(x, y); each branch Dense-LN-ReLU-Dense, then fused.
+    Guards against offsets from the wrong centre, x fed to the Y-Z branch, dz against the z sum
+    or a halved single-point mean, range from z, and ReLU before the LayerNorm (the per-cell
+    max test only sees features through the scatter)."""
+    rng = np.random.default_rng(0)
+    n = 300
+    xy = rng.choice(np.linspace(-4.6, 4.6, 9), size=(1, n, 2)) + rng.uniform(-0.1, 0.1, (1, n, 2))
+    z = rng.uniform(-2.5, 2.5, (1, n, 1))
+    pts = np.concatenate([xy, z, rng.uniform(0, 1, (1, n, 1))], -1).astype(np.float32)
+    pts[0, -1] = (3.3, -1.7, 0.4, 0.2)  # alone in its cell, off the diagonal
+    valid = np.ones((1, n), bool)
+    params = jax.jit(ENC.init, compiler_options=FAST)(jax.random.key(0), pts, valid)
+    noise = np.random.default_rng(1)  # move off init: zero biases would hide swapped inputs
+    params = jax.tree.map(lambda a: a + 0.3 * noise.normal(size=a.shape).astype(np.float32), params)
+    _, inter = _apply(params, pts, valid)
+    feats = np.asarray(inter["intermediates"]["point_features"][0])[0]
+    pp = jax.tree.map(lambda a: np.asarray(a, np.float64), params["params"])
+
+    x, y, z, i = (pts[0, :, k].astype(np.float64) for k in range(4))
+    v = 0.25
+    col, row = np.floor((x + 5) / v).astype(int), np.floor((y + 5) / v).astype(int)
+    cell = row * 40 + col
+    z_mean = np.array([z[cell == c].mean() for c in cell])
+    dx, dy = (x - (-5 + (col + 0.5) * v)) / v, (y - (-5 + (row + 0.5) * v)) / v
+    dz, rng_ = z - z_mean, np.hypot(x, y)
+
+    def branch(f, q):
+        return _dense(np.maximum(_ln(_dense(f, q["fc1"]), q["norm"]), 0), q["fc2"])
+
+    f_xz = branch(np.stack([x, z, dx, dz, rng_, i], -1), pp["branch_xz"])
+    f_yz = branch(np.stack([y, z, dy, dz, rng_, i], -1), pp["branch_yz"])
+    ref = _dense(np.concatenate([f_xz, f_yz], -1), pp["fuse"])
+    np.testing.assert_allclose(feats, ref, rtol=1e-4, atol=1e-4)

@@ -3,6 +3,7 @@
 import dataclasses
 import pathlib
 import re
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -11,8 +12,17 @@ import pytest
 
 from indoorbev_jax.config import Config
 from indoorbev_jax.models import IndoorBEV
-from indoorbev_jax.models.head import pool_memory, positional_code, sine_code_1d
+from indoorbev_jax.models.head import (
+    DecoderLayer,
+    SimpleMaskHead,
+    pool_memory,
+    positional_code,
+    sine_code_1d,
+)
 from indoorbev_jax.types import Predictions
+
+sys.path.insert(0, str(pathlib.Path(__file__).parents[1]))
+from numpy_layers import dense, layer_norm  # noqa: E402
 
 FAST = {"xla_backend_optimization_level": 0}
 TINY = Config.tiny()
@@ -183,3 +193,107 @@ def test_bfloat16_model_computes_its_output_heads_in_float32(params):
     ref = np.asarray(FORWARD(shifted, pts, valid).pos)
     # The same model: the bfloat16 trunk alone moves these untrained outputs by up to 0.1 m.
     np.testing.assert_allclose(np.asarray(out.pos), ref, atol=0.2)
+
+
+# numpy re-derivations written from DESIGN section 7 / DETR, not from head.py
+
+
+_ln, _dense = layer_norm, dense
+
+
+def _mha(q_in, k_in, v_in, p, heads):
+    """DETR multi-head attention for one frame, [Tq, C], [Tk, C] -> [Tq, C]; head.py scales the
+    query input by 1/sqrt(d) before its projection (so the bias is scaled by sqrt(d) here)."""
+    c = q_in.shape[-1]
+    d = c // heads
+    q = (q_in @ p["q"]["kernel"] / np.sqrt(d) + p["q"]["bias"]).reshape(-1, heads, d)
+    k = _dense(k_in, p["k"]).reshape(-1, heads, d)
+    v = _dense(v_in, p["v"]).reshape(-1, heads, d)
+    logits = np.einsum("qhd,khd->hqk", q, k)
+    w = np.exp(logits - logits.max(-1, keepdims=True))
+    w /= w.sum(-1, keepdims=True)
+    return _dense(np.einsum("hqk,khd->qhd", w, v).reshape(-1, c), p["out"])
+
+
+def _f64(tree):
+    return jax.tree.map(lambda a: np.asarray(a, np.float64), tree)
+
+
+def test_masks_are_mask_embedding_dot_f_proj():
+    """DESIGN 7: masks[l, b, j] = <m_j, F_proj[b]> with m_j the mask MLP of layer l's query j of
+    frame b. Batch 2 on a 40 x 40 grid: guards against the embeddings' layer and batch axes mixed
+    (same at batch 1) and the mask map transposed (same shape on square grids)."""
+    cfg = TINY
+    h, w = cfg.grid.shape
+    head = SimpleMaskHead(cfg.head, cfg.num_classes, grid=cfg.grid)
+    feats = jax.random.normal(jax.random.key(0), (2, h, w, 12))
+    p = jax.jit(head.init, compiler_options=FAST)(jax.random.key(1), feats)
+    run = jax.jit(
+        lambda p: head.apply(p, feats, capture_intermediates=True, mutable=["intermediates"]),
+        compiler_options=FAST,
+    )
+    out, inter = run(p)
+    it, pp = inter["intermediates"], _f64(p["params"])
+    f_proj = np.asarray(it["input_proj_norm"]["__call__"][0], np.float64)  # [B, H, W, C]
+    q = np.stack(
+        [
+            np.asarray(it[f"decoder{i}"]["__call__"][0], np.float64)
+            for i in range(cfg.head.num_layers)
+        ]
+    )
+    m = np.maximum(_dense(q, pp["mask_embed0"]), 0)
+    m = _dense(np.maximum(_dense(m, pp["mask_embed1"]), 0), pp["mask_embed2"])  # [L, B, Q, C]
+    ref = np.einsum("lbqc,bhwc->lbqhw", m, f_proj)
+    np.testing.assert_allclose(np.asarray(out["masks"]), ref, rtol=1e-4, atol=1e-4)
+
+
+def test_decoder_layer_matches_post_norm_detr():
+    """A decoder layer is DETR's post-norm layer: LN(t + self-attn), LN(x + cross-attn) with keys
+    memory + code and values memory, LN(x + FFN(ReLU)); attention logits scaled by 1/sqrt(d_head).
+    Guards against 1/sqrt(C), a dropped self-attention residual and the code on the values
+    instead of the keys (the streamed-vs-plain test shares these, so cannot see them)."""
+    layer = DecoderLayer(TINY.head)
+    k = jax.random.split(jax.random.key(2), 3)
+    t = jax.random.normal(k[0], (2, 5, 16))
+    mem = jax.random.normal(k[1], (2, 30, 16))
+    mem_pos = mem + jax.random.normal(k[2], (2, 30, 16))
+    p = layer.init(jax.random.key(3), t, mem, mem_pos)
+    noise = np.random.default_rng(4)  # move off init: zero biases and unit norms hide a lot
+    p = jax.tree.map(lambda a: a + 0.3 * noise.normal(size=a.shape).astype(np.float32), p)
+    out = np.asarray(jax.jit(layer.apply, compiler_options=FAST)(p, t, mem, mem_pos))
+    pp, heads = _f64(p["params"]), TINY.head.num_heads
+    for b in range(2):
+        tb, mb, kb = (np.asarray(a[b], np.float64) for a in (t, mem, mem_pos))
+        x = _ln(tb + _mha(tb, tb, tb, pp["self_attn"], heads), pp["norm1"])
+        x = _ln(x + _mha(x, kb, mb, pp["cross_attn"], heads), pp["norm2"])
+        y = _dense(np.maximum(_dense(x, pp["ffn1"]), 0), pp["ffn2"])
+        np.testing.assert_allclose(out[b], _ln(x + y, pp["norm3"]), rtol=1e-4, atol=1e-4)
+
+
+def test_fresh_learned_queries_predict_distinct_boxes():
+    """Freshly initialised learned queries differ, so the queries do not all predict the same
+    box (identical queries stay identical through the decoder and never break symmetry)."""
+    h, w = TINY.grid.shape
+    head = SimpleMaskHead(TINY.head, TINY.num_classes, grid=TINY.grid)
+    feats = jax.random.normal(jax.random.key(0), (1, h, w, 12))
+    p = jax.jit(head.init, compiler_options=FAST)(jax.random.key(1), feats)
+    pos = np.asarray(jax.jit(head.apply, compiler_options=FAST)(p, feats)["pos"])[-1, 0]  # [Q, 3]
+    assert np.abs(pos - pos[0]).max() > 1e-3, "every query predicts the same box"
+
+
+def test_head_reads_the_top_left_crop_of_the_upsampled_map(params):
+    """The upsampled map is padded past the grid at its far (bottom, right) edges; the head's
+    input is its top-left H x W crop, the cells that match the grid. Guards against cropping
+    from the wrong corner (shifts every mask and box by the padding)."""
+    h, w = TINY.grid.shape
+    pts, valid = _points(0, 2, 256)
+    run = jax.jit(
+        lambda p: MODEL.apply(p, pts, valid, capture_intermediates=True, mutable=["intermediates"]),
+        compiler_options=FAST,
+    )
+    it = run(params)[1]["intermediates"]
+    up = np.asarray(it["upsampler"]["__call__"][0], np.float64)  # [B, H', W', C'] padded
+    proj = np.asarray(it["head"]["input_proj"]["__call__"][0], np.float64)
+    assert up.shape[1] > h and up.shape[2] > w
+    ref = _dense(up[:, :h, :w], _f64(params["params"]["head"]["input_proj"]))
+    np.testing.assert_allclose(proj, ref.reshape(proj.shape), rtol=1e-4, atol=1e-4)

@@ -1,5 +1,8 @@
 """Swin backbone pieces against numpy re-derivations, and its attention masks inspected."""
 
+import sys
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,10 +13,17 @@ from indoorbev_jax.models.head import depth_to_space
 from indoorbev_jax.models.swin import (
     PatchMerging,
     SwinBackbone,
+    SwinBlock,
+    WindowAttention,
+    relative_position_index,
     stage_geometry,
+    window_masks,
     window_partition,
     window_reverse,
 )
+
+sys.path.insert(0, str(Path(__file__).parents[1]))
+from numpy_layers import dense, layer_norm  # noqa: E402
 
 # Tests only need correct numbers; skipping LLVM's optimisation halves compile time.
 FAST = {"xla_backend_optimization_level": 0}
@@ -115,3 +125,131 @@ def test_shifted_window_attention_never_crosses_a_shift_boundary_or_reads_paddin
         checked_shift += int((~contiguous).any())
         checked_pad += int((~key_valid).any())
     assert checked_shift >= 1 and checked_pad >= 1
+
+
+# numpy re-derivations written from Swin (Liu et al. 2021), not from swin.py
+
+
+_ln, _dense = layer_norm, dense
+
+
+def _gelu(x):  # flax nn.gelu default (tanh approximation)
+    return 0.5 * x * (1 + np.tanh(np.sqrt(2 / np.pi) * (x + 0.044715 * x**3)))
+
+
+def _softmax(z):
+    e = np.exp(z - z.max(-1, keepdims=True))
+    return e / e.sum(-1, keepdims=True)
+
+
+def _swin_rel_index(ws):
+    """Swin's bias-table row for (query, key): (dy + ws - 1) * (2 ws - 1) + dx + ws - 1 with
+    (dy, dx) = query - key."""
+    idx = np.zeros((ws * ws, ws * ws), int)
+    for q in range(ws * ws):
+        for k in range(ws * ws):
+            dy, dx = q // ws - k // ws, q % ws - k % ws
+            idx[q, k] = (dy + ws - 1) * (2 * ws - 1) + (dx + ws - 1)
+    return idx
+
+
+def _window_attention(x, p, heads, ws, allowed):
+    """x [nW, T, C], allowed [nW, T, T] bool: multi-head attention scaled by 1/sqrt(d_head)."""
+    nw, t, c = x.shape
+    d = c // heads
+    qkv = _dense(x, p["qkv"]).reshape(nw, t, 3, heads, d)
+    q, k, v = qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2]
+    logits = np.einsum("wqhd,wkhd->whqk", q, k) / np.sqrt(d)
+    logits = logits + p["relative_position_bias"][_swin_rel_index(ws)].transpose(2, 0, 1)[None]
+    w = _softmax(np.where(allowed[:, None], logits, -np.inf))
+    return _dense(np.einsum("whqk,wkhd->wqhd", w, v).reshape(nw, t, c), p["proj"])
+
+
+def _windows(m, ws):  # [R, R, C] -> [nW, T, C], windows row-major
+    n = m.shape[0] // ws
+    return np.stack(
+        [
+            m[a * ws : (a + 1) * ws, e * ws : (e + 1) * ws].reshape(ws * ws, -1)
+            for a in range(n)
+            for e in range(n)
+        ]
+    )
+
+
+def _unwindows(w, ws, r):
+    m, n = np.zeros((r, r, w.shape[-1])), r // ws
+    for i in range(n * n):
+        a, e = divmod(i, n)
+        m[a * ws : (a + 1) * ws, e * ws : (e + 1) * ws] = w[i].reshape(ws, ws, -1)
+    return m
+
+
+def _perturbed_f64(params, seed):
+    """Params moved off their init (zero biases and bias tables hide index bugs), and a float64
+    copy for the numpy side."""
+    rng = np.random.default_rng(seed)
+    p = jax.tree.map(lambda a: a + 0.3 * rng.normal(size=a.shape).astype(np.float32), params)
+    return p, jax.tree.map(lambda a: np.asarray(a, np.float64), p["params"])
+
+
+def test_relative_position_index_is_swins_table():
+    """Row (query, key) of the bias table is Swin's (dy, dx) = query - key, dy major. Guards
+    against swapped (dy, dx), key - query, or |dq - dk| (direction lost): a swap or negation
+    would put every shipped checkpoint's learned bias on the wrong offset."""
+    want2 = [[4, 3, 1, 0], [5, 4, 2, 1], [7, 6, 4, 3], [8, 7, 5, 4]]  # Swin, ws = 2
+    np.testing.assert_array_equal(relative_position_index(2), want2)
+    np.testing.assert_array_equal(relative_position_index(3), _swin_rel_index(3))
+
+
+def test_window_attention_matches_numpy():
+    """WindowAttention with a shift mask and padded keys equals numpy multi-head attention with
+    logits q.k / sqrt(d_head) + Swin's relative bias. Guards against 1/sqrt(C) scaling and a
+    mis-indexed bias table."""
+    mod = WindowAttention(8, 2, 3)
+    x = jax.random.normal(jax.random.key(0), (1, 4, 9, 8))
+    region, key_ok = window_masks(6, 5, 3, 1)
+    p, pp = _perturbed_f64(mod.init(jax.random.key(1), x, region, key_ok), 2)
+    out = np.asarray(mod.apply(p, x, region, key_ok))[0]
+    allowed = (region[:, :, None] == region[:, None, :]) & key_ok[:, None, :]
+    ref = _window_attention(np.asarray(x, np.float64)[0], pp, 2, 3, allowed)
+    np.testing.assert_allclose(out, ref, rtol=1e-4, atol=1e-4)
+
+
+def test_shifted_swin_block_matches_numpy():
+    """A shifted SwinBlock equals Swin's recipe in numpy: roll by -s, attend within the rolled
+    map's 3 x 3 regions, roll back, residual, then a GELU MLP with residual. Guards against a
+    ReLU MLP (the plain and chunked paths share it, so comparing them cannot see it), the
+    attention scale and the bias index."""
+    r, ws, s = 6, 3, 1
+    blk = SwinBlock(8, 2, ws, s, r)
+    x = np.asarray(jax.random.normal(jax.random.key(3), (r, r, 8)), np.float64)
+    x32 = jnp.asarray(x[None], jnp.float32)
+    p, pp = _perturbed_f64(blk.init(jax.random.key(4), x32), 5)
+    out = np.asarray(blk.apply(p, x32))[0]
+    lab = np.zeros((r, r), int)  # Swin's mask: label the regions of the rolled map
+    cuts = [slice(0, r - ws), slice(r - ws, r - s), slice(r - s, r)]
+    for a, rows in enumerate(cuts):
+        for c, cols in enumerate(cuts):
+            lab[rows, cols] = 3 * a + c
+    lw = _windows(lab[..., None], ws)[..., 0]
+    y = _windows(np.roll(_ln(x, pp["norm1"]), (-s, -s), (0, 1)), ws)
+    y = _window_attention(y, pp["attn"], 2, ws, lw[:, :, None] == lw[:, None, :])
+    x1 = x + np.roll(_unwindows(y, ws, r), (s, s), (0, 1))
+    ref = x1 + _dense(_gelu(_dense(_ln(x1, pp["norm2"]), pp["fc1"])), pp["fc2"])
+    np.testing.assert_allclose(out, ref, rtol=1e-4, atol=1e-4)
+
+
+def test_backbone_outputs_are_zero_on_padding():
+    """SwinBackbone zeroes padded cells after each stage (its docstring). 10 valid cells of 24
+    give stage maps with 10, 5, 3, 2 valid of 24, 12, 6, 3; without the zeroing the padding holds
+    MLP outputs and a patch merge pairs the last valid cell of an odd map with padding, so
+    padding-derived values reach valid cells (as in the small preset, 100 of 112)."""
+    cfg = Config.tiny().backbone
+    x = jax.random.normal(jax.random.key(6), (1, 10, 10, 16))
+    mod = SwinBackbone(cfg)
+    params = jax.jit(mod.init, compiler_options=FAST)(jax.random.key(7), x)
+    outs = jax.jit(mod.apply, compiler_options=FAST)(params, x)
+    for k, (_, valid, _) in enumerate(stage_geometry(10, cfg)):
+        if k in outs:
+            o = np.asarray(outs[k])
+            assert np.all(o[:, valid:] == 0) and np.all(o[:, :, valid:] == 0), k

@@ -42,3 +42,15 @@ def test_bev_skip_changes_the_output_cellwise():
     moved = up.apply(params, stages, bev.at[0, 5, 7].set(1.0))
     changed = np.argwhere(np.abs(np.asarray(moved - base)).sum(-1)[0] > 0)
     np.testing.assert_array_equal(changed, [[5, 7]])
+
+
+def test_stage_skip_lands_on_its_own_cell():
+    """A bump in one cell of the full-resolution stage changes the upsampled map in that cell
+    only. Guards against the lateral skip added misaligned (flipped) onto the upsampled map."""
+    stages = {0: jnp.zeros((1, 24, 24, 16)), 1: jnp.zeros((1, 12, 12, 32))}
+    up = AdaptiveUpsampler(1, 8, skips=True)
+    params = up.init(jax.random.key(0), stages)
+    base = up.apply(params, stages)
+    moved = up.apply(params, {0: stages[0].at[0, 5, 7].set(1.0), 1: stages[1]})
+    changed = np.argwhere(np.abs(np.asarray(moved - base)).sum(-1)[0] > 0)
+    np.testing.assert_array_equal(changed, [[5, 7]])
