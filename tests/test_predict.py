@@ -7,6 +7,7 @@ import re
 import shutil
 import sys
 import time
+import types
 from pathlib import Path
 
 import jax
@@ -372,6 +373,42 @@ def test_nan_intensity_stays_invalid_after_scaling():
     assert counts["nonfinite_points"] == 1 and valid.sum() == 1
 
 
+def test_head_boxes_have_their_yaw_wrapped():
+    """to_labels documents "Yaw is wrapped to [-pi, pi) either way": the head's yaw is an
+    unbounded Dense output, and a raw 4.0 rad must come out as 4 - 2 pi = -2.2831853 (ROS
+    detections publish labels.yaw as it is). Guards against passing the head's yaw through
+    unwrapped. Pure function: no model."""
+    final = types.SimpleNamespace(
+        dims=np.array([[1.0, 0.5, 0.8]]), pos=np.array([[1.0, 2.0, 0.4]]), yaw=np.array([[4.0]])
+    )
+    output = types.SimpleNamespace(
+        segment_valid=np.array([True]),
+        det_classes=np.array([1]),
+        det_scores=np.array([0.9]),
+        instance_ids=np.array([[0, 1], [1, 1]]),
+    )
+    labels, _ = P.to_labels(final, output, "head")
+    np.testing.assert_allclose(labels.yaw, [4.0 - 2 * np.pi], atol=1e-6)
+
+
+def test_a_resumed_frame_needs_every_label_lines_mask_id(tmp_path):
+    """_damaged_outputs keeps an earlier run's frame only when its mask ids are exactly
+    1..(label lines): with 2 label lines and only id 1 in the mask (object 2's cells lost)
+    the frame is damaged and predicted again; with ids 1 and 2 it is kept. Guards against a
+    subset check (ids within 1..n) that keeps the frame with an object missing."""
+    labels = kitti.ObjectLabels(
+        [1, 2], [[1, 1, 1], [1, 1, 1]], [[1, 1, 0.5], [2, 2, 0.5]], [0, 0], [0, 0], [0.9, 0.8]
+    )
+    kitti.write_labels(tmp_path / "l.txt", labels, CFG.data.class_names)
+    ids = np.zeros(CFG.grid.shape, np.int32)
+    ids[0, 0] = 1
+    kitti.write_mask(tmp_path / "m.png", ids)
+    assert P._damaged_outputs(tmp_path / "l.txt", tmp_path / "m.png", None, CFG) is not None
+    ids[0, 1] = 2
+    kitti.write_mask(tmp_path / "m.png", ids)
+    assert P._damaged_outputs(tmp_path / "l.txt", tmp_path / "m.png", None, CFG) is None
+
+
 def test_predictor_with_views_maps_features_and_segments_back(model_file, tmp_path):
     """A mirrored cloud read through the single view ``mirror_y`` is the plain cloud's
     forward: features and panoptic map come back mirrored; ``predict`` writes its labels."""
@@ -490,6 +527,29 @@ def _bag_messages(bag, topic):
             stamp = None if hdr is None else hdr.stamp.sec * 10**9 + hdr.stamp.nanosec
             out.append((log, stamp, msg))
         return out
+
+
+def test_timeless_clouds_are_logged_at_10_hz_and_sparse_ones_not_thinned(
+    model_file, tmp_path, capsys
+):
+    """Clouds without times (.bin files) go into --bag-out at 10 Hz, the k-th (from 1) at
+    k x 0.1 s: 100 and 200 ms for two files. Two 400-point clouds are far below
+    data.max_points, so no frame counts as thinned and the closing "more valid points than
+    data.max_points" line is not printed. Guards against logging the first frame at 0 and
+    against counting every frame as thinned (dropped points >= 0 always)."""
+    assert CFG.data.max_points > 400
+    for k, scan in enumerate(_scans(2)):
+        kitti.write_points(tmp_path / "in" / f"{k:06d}.bin", scan)
+    summary = P.predict(
+        model_file, tmp_path / "in", tmp_path / "o", bag_out=tmp_path / "bag", pictures=False
+    )
+    assert summary["frames"] == 2 and summary["thinned_frames"] == 0
+    assert "more valid points than" not in capsys.readouterr().out
+    from rosbags.rosbag2 import Reader
+
+    with Reader(tmp_path / "bag") as reader:
+        times = sorted({t for _, t, _ in reader.messages()})
+    assert times == [100_000_000, 200_000_000]
 
 
 def test_organized_cloud_with_padded_rows_reads_each_point_once():

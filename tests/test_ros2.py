@@ -6,6 +6,7 @@ import dataclasses
 import math
 import os
 import queue
+import shutil
 import signal
 import subprocess
 import sys
@@ -355,6 +356,20 @@ class _Lines:
             if text in line:
                 return line
         raise AssertionError(f"no line with '{text}' within {timeout} s; got {self.all}")
+
+
+def test_a_closed_recording_leaves_no_partial_folder(tmp_path):
+    """close() moves the bag out of <bag>.partial/ and removes that folder: a finished
+    recording leaves only the bag, and after the bag is removed the same path can be
+    recorded again. Guards against leaving the emptied .partial folder, which the next
+    recording to that path refuses as "left by an interrupted recording"."""
+    raw = _raw_cloud(_scan(20))
+    for _ in range(2):
+        rec = BagRecorder(tmp_path / "bag", {"/a": POINTCLOUD2}, TS, "mcap")
+        rec.write("/a", 2, raw)
+        assert rec.close() == tmp_path / "bag"
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["bag"]
+        shutil.rmtree(tmp_path / "bag")
 
 
 def test_sim_to_detect_loop(model, tmp_path, monkeypatch):

@@ -1,6 +1,7 @@
 """KITTI-style files: round trips, the camera convention, and bad input named clearly."""
 
 import math
+import os
 import warnings
 
 import numpy as np
@@ -141,6 +142,14 @@ def test_bad_label_lines_name_file_and_line(tmp_path, line, message):
         kitti.read_labels(tmp_path / "l.txt", DATA)
 
 
+def test_truncation_one_is_inside_kittis_range(tmp_path):
+    """KITTI's truncation lies in [0, 1], both ends included (1.0 = fully truncated, as the
+    refusal message itself quotes): a line with truncation 1.00 is one object, not an error.
+    Guards against a half-open check (``0 <= t < 1``) that refuses the upper end."""
+    (tmp_path / "l.txt").write_text(GOOD.replace("0.00 0 -10", "1.00 0 -10") + "\n")
+    assert len(kitti.read_labels(tmp_path / "l.txt", DATA)) == 1
+
+
 def test_unknown_class_mapped_in_config(tmp_path):
     (tmp_path / "l.txt").write_text(GOOD.replace("Table", "Desk") + "\n")
     data = DataConfig(class_map=(("Desk", "Table"),))
@@ -168,6 +177,16 @@ def test_mask_round_trip_and_wrong_size(tmp_path):
     with pytest.raises(ValueError, match=r"big\.png: expected \[H, W\] ids in 0\.\.65535"):
         kitti.write_mask(tmp_path / "big.png", ids)
     assert not (tmp_path / "big.png").exists()
+
+
+def test_a_mask_of_the_wrong_width_alone_is_refused(tmp_path):
+    """A mask must match the grid in both H and W: one with the grid's height but 10 more
+    columns (40 x 50 for the tiny 40 x 40 grid) is refused, not read. Guards against a check
+    of the height only, which would pair the labels with the wrong cells."""
+    shape = Config.tiny().grid.shape
+    kitti.write_mask(tmp_path / "m.png", np.zeros((shape[0], shape[1] + 10), np.int32))
+    with pytest.raises(kitti.DatasetError, match=r"m\.png: mask of shape \(40, 50\)"):
+        kitti.read_mask(tmp_path / "m.png", shape)
 
 
 def test_masks_must_be_png_of_integer_ids(tmp_path):
@@ -283,6 +302,30 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
         kitti.atomic_write(tmp_path / "a_file" / "sub" / "y.txt", lambda p: p.write_text("y"))
 
 
+def test_atomic_write_syncs_the_data_before_the_rename(tmp_path, monkeypatch):
+    """atomic_write's documented order: the temporary file's data reach the disk (fsync)
+    before it is renamed into place, so a power cut cannot leave an empty file under the
+    final name. Guards against dropping the fsync (invisible without a power cut, so the
+    calls are recorded here)."""
+    calls = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        calls.append(("fsync", os.path.basename(os.readlink(f"/proc/self/fd/{fd}"))))
+        real_fsync(fd)
+
+    def replace(a, b):
+        calls.append(("replace", os.path.basename(a), os.path.basename(b)))
+        real_replace(a, b)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    monkeypatch.setattr(os, "replace", replace)
+    kitti.atomic_write(tmp_path / "x.txt", lambda p: p.write_text("x"))
+    assert [c[0] for c in calls] == ["fsync", "replace"]
+    assert calls[0][1] == calls[1][1] and calls[1][2] == "x.txt"
+    assert (tmp_path / "x.txt").read_text() == "x"
+
+
 def test_dontcare_blank_lines_and_bom_are_not_objects(tmp_path):
     """KITTI's DontCare regions and blank lines are skipped, a byte-order mark is not part of
     the first name, and mask instance k is the k-th object line."""
@@ -396,6 +439,23 @@ def test_a_five_emitter_scan_in_four_columns_is_read(tmp_path, half, ceiling):
 
     directions = np.asarray(Mid360Pattern(num_emitters=5).frame(0).directions, np.float64)
     scan = _in_room(directions, ceiling=ceiling, half=half)
+    kitti.write_points(tmp_path / "ok.bin", scan)
+    np.testing.assert_array_equal(kitti.read_points(tmp_path / "ok.bin"), scan)
+
+
+@pytest.mark.parametrize("intensity", [0.0, 1.0])
+def test_a_five_emitter_scan_with_a_constant_intensity_is_read(tmp_path, intensity):
+    """A genuine 4-column 5-emitter MID-360 frame whose intensity column is constant (0 or
+    1, e.g. a driver that fills no intensity) in the 6 x 4 m room is read as written. Read
+    as 5 columns, its "5th column" cycles through x, y, z and the constant intensity: a
+    quarter or more of it whole numbers and about half of it not decreasing, far from the
+    99 % that marks a real id or time column. Guards against a looser id-or-time rule
+    (>= 50 %), under which this file was refused as 5 columns."""
+    from indoorbev_sim.patterns import Mid360Pattern
+
+    directions = np.asarray(Mid360Pattern(num_emitters=5).frame(0).directions, np.float64)
+    scan = _in_room(directions, ceiling=2.0, half=(3.0, 2.0))
+    scan[:, 3] = intensity
     kitti.write_points(tmp_path / "ok.bin", scan)
     np.testing.assert_array_equal(kitti.read_points(tmp_path / "ok.bin"), scan)
 

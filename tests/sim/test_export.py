@@ -121,6 +121,19 @@ def test_bag_markers_start_with_deleteall(exported):
     assert all(m.action == 0 for a in arrays for m in a.markers[1:])  # ADD
 
 
+def test_bag_times_are_one_frame_dt_after_each_frame(exported):
+    """The bag's record times (and stamps) of frame i are (i + 1) * frame_dt, as the module
+    documents: 100, 200, ... 2000 ms for the tiny preset's 0.1 s frames, no message at time
+    0. Guards against stamping frame i at i * frame_dt."""
+    from rosbags.rosbag2 import Reader
+
+    _, bag, _ = exported
+    with Reader(bag) as reader:
+        times = sorted({t for _, t, _ in reader.messages()})
+    dt = round(CFG.sim.frame_dt * 1e9)
+    assert dt == 100_000_000 and times == [(i + 1) * dt for i in range(FRAMES)]
+
+
 def test_show_writes_pictures(exported, tmp_path):
     root, _, _ = exported
     written = show.show(root, tmp_path, CFG, ids=["000000", "000001"])
@@ -393,6 +406,20 @@ def test_resume_progress_counts_only_new_frames(exported, tmp_path, monkeypatch,
     assert _tree(out) == _tree(root)
 
 
+def test_a_deleted_mask_makes_its_scene_be_written_again(exported, tmp_path, capsys):
+    """A frame is complete only with its points, labels and mask: deleting mask_2/000019.png
+    makes the resume write scene 9 (frames 18, 19) again, saying 18 of 20 frames were kept,
+    and the folder then equals the uninterrupted export. Guards against a completeness test
+    that ignores the mask (the frame kept without it, "resuming: 20 of 20")."""
+    root, _, _ = exported
+    out = tmp_path / "resume"
+    shutil.copytree(root, out)
+    kitti.frame_paths(out, "000019")["mask"].unlink()
+    export_mod.export(out, FRAMES, SEED, CFG, progress=False)
+    assert f"resuming: 18 of {FRAMES} frames already written" in capsys.readouterr().err
+    assert _tree(out) == _tree(root)
+
+
 def test_cli_takes_the_preset_of_export_json(exported, tmp_path, capsys):
     root, _, _ = exported
     out = tmp_path / "resume"
@@ -438,6 +465,14 @@ def test_show_takes_a_class_map_for_data_of_ones_own(exported, tmp_path, capsys)
     assert "unknown class 'Desk'" in capsys.readouterr().err
     assert main([*argv, "--set", 'data.class_map={"Desk": "Table"}']) == 0
     assert (tmp_path / "pics" / f"{fid}.png").exists()
+
+
+def test_a_fresh_export_with_a_cut_scene_says_nothing_of_resuming(tmp_path, capsys):
+    """A fresh export of 3 frames (scenes of 2, the last cut after one frame) has written
+    nothing before, so it prints no "resuming:" line. Guards against counting the frames
+    kept as frames - (scenes to do) x (frames a scene), which printed "resuming: -1 of 3"."""
+    export_mod.export(tmp_path / "odd", 3, SEED, CFG, progress=False)
+    assert "resuming" not in capsys.readouterr().err
 
 
 def test_an_odd_frame_count_cuts_the_last_scene(exported, tmp_path):

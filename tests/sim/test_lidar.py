@@ -487,6 +487,154 @@ def test_a_batch_of_one_keeps_its_axis_and_empty_casts_are_empty(method):
     np.testing.assert_array_equal(np.asarray(gid), -1)
 
 
+def _scene(xml):
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    return m, d, mjx.put_model(m), mjx.put_data(m, d)
+
+
+@pytest.mark.parametrize("method", ["binned", "brute", "jax"])
+def test_a_direction_shorter_than_mjminval_misses(method):
+    """cast_rays documents a direction of length < mjMINVAL (1e-15) as a miss. Straight down
+    from 1 m over the floor plane, (0, 0, -1e-16) misses (-1, -1) while (0, 0, -1) hits the
+    floor at 1 m, as mj_ray gives for that unit ray. Guards against casting tiny directions,
+    which answered 1e16 (1 m in units of |direction|)."""
+    m, d, mx, dx = _scene(
+        '<mujoco><worldbody><geom type="plane" size="0 0 1"/></worldbody></mujoco>'
+    )
+    origin = np.array([0.0, 0.0, 1.0])
+    dirs = np.array([[0, 0, -1e-16], [0, 0, -1]], np.float32)
+    ref_d, ref_g = mj_ray_reference(m, d, origin, dirs[1:])
+    assert ref_d.tolist() == [1.0] and ref_g.tolist() == [0]
+    dist, gid = _cast[method](mx, dx, jnp.asarray(origin, jnp.float32), jnp.asarray(dirs))
+    assert np.asarray(dist).tolist() == [-1.0, 1.0] and np.asarray(gid).tolist() == [-1, 0]
+
+
+@pytest.mark.parametrize("method", ["binned", "brute", "jax"])
+def test_rays_from_on_or_inside_a_surface_match_mj_ray(method):
+    """A ray starting exactly on a sphere's surface (r = 1, origin (1, 0, 0)) hits it at 0
+    going in and going out (mj_ray's ray_quad keeps a root of exactly 0); a ray from inside
+    a capsule (r 0.5, half-length 1, origin (0, 0, 0.8)) going down and out at 45 degrees
+    leaves through its side at 0.707107 (mj_ray). Guards against refusing a root of 0 (the
+    jax caster answered 2 going in, a miss going out) and against testing the cap sphere's
+    root against the capsule's middle plane instead of its end (0.338162)."""
+    s = 1 / np.sqrt(2)
+    for xml, origin, dirs in [
+        ('<geom type="sphere" size="1"/>', [1, 0, 0], [[-1, 0, 0], [1, 0, 0]]),
+        ('<geom type="capsule" size="0.5 1"/>', [0, 0, 0.8], [[s, 0, -s]]),
+    ]:
+        m, d, mx, dx = _scene(f"<mujoco><worldbody>{xml}</worldbody></mujoco>")
+        origin, dirs = np.array(origin, np.float64), np.array(dirs, np.float32)
+        ref_d, ref_g = mj_ray_reference(m, d, origin, dirs)
+        assert (ref_g == 0).all()
+        dist, gid = _cast[method](mx, dx, jnp.asarray(origin, jnp.float32), jnp.asarray(dirs))
+        np.testing.assert_allclose(np.asarray(dist), ref_d, atol=1e-5, err_msg=xml)
+        np.testing.assert_array_equal(np.asarray(gid), ref_g, err_msg=xml)
+
+
+@pytest.mark.parametrize("method", ["binned", "brute", "jax"])
+def test_max_range_is_in_metres_for_a_non_unit_direction(method):
+    """Distances are in units of |direction| (as mj_ray's), max_range in metres: with
+    direction (2, 0, 0) a sphere whose surface is 8 m away is hit at 4.0 (mj_ray) within
+    10 m and missed with max_range 6 m. Guards against comparing the distance in units of
+    |direction| (4) with the range in metres (6)."""
+    m, d, mx, dx = _scene(
+        '<mujoco><worldbody><geom type="sphere" size="1" pos="9 0 0"/></worldbody></mujoco>'
+    )
+    origin, dirs = np.zeros(3), np.array([[2.0, 0, 0]], np.float32)
+    ref_d, ref_g = mj_ray_reference(m, d, origin, dirs)
+    assert ref_d.tolist() == [4.0] and ref_g.tolist() == [0]
+    for max_range, want in ((10.0, (4.0, 0)), (6.0, (-1.0, -1))):
+        dist, gid = lidar.cast_rays(
+            mx, dx, jnp.zeros(3), jnp.asarray(dirs), max_range, method=method
+        )
+        assert (float(dist[0]), int(gid[0])) == want, max_range
+
+
+@pytest.mark.parametrize("method", ["binned", "brute", "jax"])
+def test_an_exact_tie_goes_to_the_lower_geom_id(method):
+    """Two geoms of different types at exactly the same distance (a cylinder, id 0, and a
+    box, id 1, both with their top at z = 1) give the lower id, as mj_ray does (1.0, 0) for
+    a ray straight down from z = 2. Guards against a tie rule that keeps the later geom or
+    the higher id."""
+    m, d, mx, dx = _scene(
+        """<mujoco><worldbody><geom type="cylinder" size="0.5 0.5" pos="0 0 0.5"/>
+        <geom type="box" size="0.5 0.5 0.5" pos="0 0 0.5"/></worldbody></mujoco>"""
+    )
+    origin, dirs = np.array([0.0, 0.0, 2.0]), np.array([[0.0, 0, -1]], np.float32)
+    ref_d, ref_g = mj_ray_reference(m, d, origin, dirs)
+    assert ref_d.tolist() == [1.0] and ref_g.tolist() == [0]
+    dist, gid = _cast[method](mx, dx, jnp.asarray(origin, jnp.float32), jnp.asarray(dirs))
+    assert (float(dist[0]), int(gid[0])) == (1.0, 0)
+
+
+@pytest.mark.parametrize("method", ["binned", "jax"])
+def test_material_zero_alpha_and_jointless_child_bodies_follow_mj_ray(method):
+    """A geom whose material (id 0, the only one) has alpha 0 is invisible to mj_ray, which
+    misses it (-1); with flg_static=0 a body without joints is welded to the world and
+    skipped like the world's own geoms, so the ray along +x passes the shelf at 4.5 m and
+    hits the free cart at 7.5 m (mj_ray: 7.5, geom 1). Guards against testing material ids
+    > 0 only (id 0 is a material) and against skipping only the world body's geoms."""
+    m, d, mx, dx = _scene(
+        """<mujoco><asset><material name="clear" rgba="1 1 1 0"/></asset><worldbody>
+        <geom type="sphere" size="1" pos="5 0 0" material="clear"/></worldbody></mujoco>"""
+    )
+    dirs = np.array([[1.0, 0, 0]], np.float32)
+    ref_d, ref_g = mj_ray_reference(m, d, np.zeros(3), dirs)
+    assert ref_g.tolist() == [-1]
+    dist, gid = _cast[method](mx, dx, jnp.zeros(3), jnp.asarray(dirs))
+    assert (float(dist[0]), int(gid[0])) == (-1.0, -1)
+    m, d, mx, dx = _scene(
+        """<mujoco><worldbody>
+        <body name="shelf" pos="5 0 0"><geom type="box" size="0.5 0.5 0.5"/></body>
+        <body name="cart" pos="8 0 0"><freejoint/><geom type="box" size="0.5 0.5 0.5"/></body>
+        </worldbody></mujoco>"""
+    )
+    ref_d, ref_g = mj_ray_reference(m, d, np.zeros(3), dirs, flg_static=0)
+    assert ref_d.tolist() == [7.5] and ref_g.tolist() == [1]
+    dist, gid = lidar.cast_rays(
+        mx, dx, jnp.zeros(3), jnp.asarray(dirs), MAX_RANGE, flg_static=False, method=method
+    )
+    assert (float(dist[0]), int(gid[0])) == (7.5, 1)
+
+
+def test_binned_culling_keeps_geoms_on_cell_corners():
+    """The binned caster's cube-map culling must keep a geom seen exactly along a cell's
+    corner or edge direction: 25 spheres of radius 0.5 mm, 5 m away along the 5 x 5 grid
+    of cell-corner directions (1, u, w) of a 4-cell cube face, are each hit by the ray aimed
+    at its centre, as the brute caster (every geom per ray) and mj_ray hit them. Guards
+    against shrinking the cone's widening margin (the cell's angular radius plus 1e-3 rad)
+    instead of growing it, which lost 7 of the 25."""
+    edges = np.linspace(-1, 1, 5)
+    dirs = np.array([[1.0, u, w] for u in edges for w in edges])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    geoms = "".join(
+        f'<geom type="sphere" size="0.0005" pos="{x:.9f} {y:.9f} {z:.9f}"/>' for x, y, z in 5 * dirs
+    )
+    m, d, mx, dx = _scene(f"<mujoco><worldbody>{geoms}</worldbody></mujoco>")
+    ref_d, ref_g = mj_ray_reference(m, d, np.zeros(3), dirs)
+    assert (ref_g == np.arange(25)).all()
+    ray = jnp.asarray(dirs, jnp.float32)
+    dist, gid = lidar.cast_rays(mx, dx, jnp.zeros(3), ray, 20.0, method="binned", cells_per_edge=4)
+    np.testing.assert_array_equal(np.asarray(gid), ref_g)
+    np.testing.assert_allclose(np.asarray(dist), ref_d, atol=1e-4)
+
+
+def test_cylinder_normals_are_the_axis_on_a_cap_and_radial_on_the_side():
+    """The surface normal at a hit on a cylinder (r 0.5, half-height 0.5) is its axis
+    (0, 0, 1) at a point of the flat top cap (0.1, 0, 0.5) and radial (1, 0, 0) at a point
+    of the side (0.5, 0, 0.1); intensity is reflectivity x cos(incidence) on these normals.
+    Guards against choosing cap or side the wrong way round."""
+    _, _, mx, dx = _scene(
+        '<mujoco><worldbody><geom type="cylinder" size="0.5 0.5"/></worldbody></mujoco>'
+    )
+    geo = lidar.scene_geometry(mx, dx)
+    pts = jnp.asarray([[[0.1, 0.0, 0.5], [0.5, 0.0, 0.1]]], jnp.float32)
+    n = lidar.surface_normals(geo, pts, jnp.zeros((1, 2), jnp.int32))[0]
+    np.testing.assert_allclose(np.asarray(n), [[0, 0, 1], [1, 0, 0]], atol=1e-6)
+
+
 README_SNIPPET = """
 import os
 
