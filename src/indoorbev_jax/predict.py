@@ -20,7 +20,6 @@ import functools
 import hashlib
 import json
 import os
-import re
 import statistics
 import sys
 import time
@@ -526,28 +525,11 @@ def model_fingerprint(config: Config, params: Any) -> str:
     return digest.hexdigest()
 
 
-# kitti.atomic_write's temporary name: mkstemp's ".<name>.<8 characters>.tmp".
-_TEMPORARY = re.compile(r"\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp")
-
-
 def _remove_stale_temporaries(out: Path) -> None:
-    """A kill -9 mid-write leaves atomic_write's hidden temporary file; no run reads it.
-    Only regular files of that name, for an output file name, and a minute old (a write
-    in flight, of a second run in the same folder, takes milliseconds) are removed."""
-    now = time.time()
-    places = [(out / d, ext) for d, ext in OUTPUT_DIRS.items()] + [(out, ".json")]
-    for folder, ext in places:
-        for path in folder.glob(".*.tmp"):
-            match = _TEMPORARY.fullmatch(path.name)
-            if not match or not match["name"].endswith(ext):
-                continue
-            if folder == out and match["name"] != "predict.json":
-                continue
-            try:
-                if path.is_file() and not path.is_symlink() and now - path.stat().st_mtime > 60:
-                    path.unlink()
-            except OSError:  # gone meanwhile, or not ours to remove: left alone
-                pass
+    """What a kill -9 mid-write left of this run's outputs; no run reads it."""
+    for d, ext in OUTPUT_DIRS.items():
+        kitti.remove_stale_temporaries(out / d, f"*{ext}")
+    kitti.remove_stale_temporaries(out, "predict.json")
 
 
 def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:

@@ -27,7 +27,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -150,6 +152,29 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
         raise
+
+
+# atomic_write's temporary name: mkstemp's ".<name>.<8 characters>.tmp".
+_TEMPORARY = re.compile(r"\..+\.[a-z0-9_]{8}\.tmp")
+
+
+def remove_stale_temporaries(folder: Path, names: str, min_age: float = 60.0) -> None:
+    """Removes the temporary files a killed ``atomic_write`` left in ``folder`` for files
+    matching the glob ``names``: regular files of its naming, ``min_age`` seconds old (a
+    write in flight, of another process writing the same folder, takes milliseconds). A
+    user's hidden file of another name is never touched."""
+    now = time.time()
+    for path in Path(folder).glob(f".{names}.*.tmp"):
+        try:
+            if (
+                _TEMPORARY.fullmatch(path.name)
+                and path.is_file()
+                and not path.is_symlink()
+                and now - path.stat().st_mtime > min_age
+            ):
+                path.unlink()
+        except OSError:  # gone meanwhile, or not ours to remove: left alone
+            pass
 
 
 # Points ------------------------------------------------------------------------------------
