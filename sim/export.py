@@ -157,11 +157,11 @@ def _check_bag_place(bag: Path, root: Path) -> None:
 
 
 def _remove_stale_temporaries(root: Path) -> None:
-    """Deletes what a killed ``kitti.atomic_write`` left (``.<name>.<random>.tmp``): the
-    folder is this export's (export.json checked), and its files are whole or absent."""
+    """Deletes what a killed ``kitti.atomic_write`` left (``.<name>.<random>.tmp``, a minute
+    old) in this export's folders (export.json checked); a user's hidden file of another
+    name, or another export's write in flight, is left alone."""
     for folder in (root, *(root / d for d in _DATA_DIRS)):
-        for tmp in folder.glob(".*.tmp"):
-            tmp.unlink(missing_ok=True)
+        kitti.remove_stale_temporaries(folder, "*")
 
 
 def saved_preset(root: str | os.PathLike) -> str | None:
