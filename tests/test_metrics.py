@@ -335,11 +335,15 @@ def test_iou_thresholds_above_1_are_refused():
     0.9999999999999999, pycocotools' cap at 1 - 1e-10 turning it into an exact-match test)."""
     g = (np.ones((1, 4, 4), bool), np.array([0]))
     d = (np.ones((1, 4, 4), bool), np.array([0]), np.array([0.9]))
-    for bad in ((1.5,), (25, 50), (0.5, 1.0 + 1e-9), (-0.25,), (math.nan,), ()):
-        with pytest.raises(ValueError, match=r"iou_thresholds: expected values in \[0, 1\]"):
+    # Strings, bools, None and a bare number are named too (a string was a TypeError).
+    refused = r"iou_thresholds: expected (a number in \[0, 1\]|at least one|a sequence of)"
+    for bad in ((1.5,), (25, 50), (0.5, 1.0 + 1e-9), (-0.25,), (math.nan,), (),
+                ("0.5",), (True,), (None,), 0.5, "0.25, 0.5"):  # fmt: skip
+        with pytest.raises(ValueError, match=refused):
             mask_ap([g], [d], bad)
-        with pytest.raises(ValueError, match=r"iou_thresholds: expected values in \[0, 1\]"):
+        with pytest.raises(ValueError, match=refused):
             Evaluator(iou_thresholds=bad)
+    assert Evaluator(iou_thresholds=np.array([0.25, 0.5])).iou_thresholds == (0.25, 0.5)
     assert mask_ap([g], [d], (0.0, 1.0))["ap"] == coco_reference([g], [d], (0.0, 1.0))[0]
 
 
@@ -373,8 +377,9 @@ def test_class_confusion_hand_example():
     assert text.splitlines()[1].split() == ["Table", "0", "0", "1", "0"]
     with pytest.raises(ValueError, match="expected shape \\(2, 3\\)"):
         format_confusion(expected, ["Table", "Chair"])
-    with pytest.raises(ValueError, match="iou_threshold: expected a value in"):
-        class_confusion(gts, dets, 1.5, num_classes=3)
+    for bad in (1.5, "0.5", None):
+        with pytest.raises(ValueError, match=r"iou_threshold: expected a number in \[0, 1\]"):
+            class_confusion(gts, dets, bad, num_classes=3)
     with pytest.raises(ValueError, match="gts and dets: 1 vs 0 frames"):
         class_confusion(gts, [], num_classes=3)
     with pytest.raises(ValueError, match=r"dets\[0\]: class ids must lie in 0..2"):
@@ -522,8 +527,8 @@ def test_paper_miou_ties_go_to_the_lower_ids_and_its_threshold_is_above_0():
     # At threshold 0 segments sharing no cell would be a match: refused, as a negative one.
     disjoint = np.zeros((1, 12), np.int32)
     disjoint[0, 10:12] = 1
-    for bad in (0.0, -1.0, 1.5, math.nan):
-        with pytest.raises(ValueError, match=r"expected a value in \(0, 1\]"):
+    for bad in (0.0, -1.0, 1.5, math.nan, "0.5", True):
+        with pytest.raises(ValueError, match=r"expected a number in \(0, 1\]"):
             paper_miou([(gt, np.array([9, 0, 0]))], [(disjoint, np.array([9, 0]))],
                        iou_threshold=bad)  # fmt: skip
         with pytest.raises(ValueError, match="miou_match_iou"):

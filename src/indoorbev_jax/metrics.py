@@ -251,11 +251,30 @@ def _coco_precision(
     return precision, num_gt
 
 
+def _check_iou(name: str, value, low_open: bool = False) -> float:
+    """``value`` as a float in [0, 1] ((0, 1] with ``low_open``); a string, a bool or NaN is
+    refused by name (``float("0.5") < 1`` would pass a string through to a TypeError)."""
+    thr = math.nan
+    if not isinstance(value, str | bytes | bool | np.bool_):
+        try:
+            thr = float(value)
+        except (TypeError, ValueError):
+            pass
+    if not (0.0 < thr <= 1.0 if low_open else 0.0 <= thr <= 1.0):
+        bounds = "(0, 1]" if low_open else "[0, 1]"
+        raise ValueError(f"{name}: expected a number in {bounds}, got {value!r}")
+    return thr
+
+
 def _check_thresholds(iou_thresholds: Sequence[float]) -> tuple[float, ...]:
-    thresholds = tuple(float(t) for t in iou_thresholds)
-    if not thresholds or any(not 0.0 <= t <= 1.0 for t in thresholds):
-        raise ValueError(f"iou_thresholds: expected values in [0, 1], got {iou_thresholds!r}")
-    return thresholds
+    if isinstance(iou_thresholds, str) or not isinstance(iou_thresholds, Sequence | np.ndarray):
+        raise ValueError(
+            f"iou_thresholds: expected a sequence of numbers in [0, 1] (e.g. (0.25, 0.5)), "
+            f"got {iou_thresholds!r}"
+        )
+    if len(iou_thresholds) == 0:
+        raise ValueError("iou_thresholds: expected at least one threshold, got none")
+    return tuple(_check_iou("iou_thresholds", t) for t in iou_thresholds)
 
 
 def _ap_from_frames(
@@ -324,9 +343,7 @@ def _confusion_from_frames(
     ``rows``: ``(per-frame row ids [G], number of rows)`` to count ground truths by something
     other than their class (e.g. the simulator's object variant); None: by class.
     """
-    thr = float(iou_threshold)
-    if not 0.0 <= thr <= 1.0:
-        raise ValueError(f"iou_threshold: expected a value in [0, 1], got {iou_threshold!r}")
+    thr = _check_iou("iou_threshold", iou_threshold)
     iou, det_cls, _, gt_cls = _stack_frames(frames)
     num_rows = num_classes
     if rows is not None:
@@ -484,11 +501,9 @@ class _PanopticStats:
 
     def __post_init__(self):
         # A threshold of 0 would match same-class segments that share no cell.
-        if not 0.0 < self.match_iou <= 1.0:
-            raise ValueError(
-                f"mIoU match threshold (iou_threshold / miou_match_iou): expected a value in "
-                f"(0, 1], got {self.match_iou!r}"
-            )
+        self.match_iou = _check_iou(
+            "mIoU match threshold (iou_threshold / miou_match_iou)", self.match_iou, low_open=True
+        )
         k = self.num_classes
         self.tp = np.zeros(k, np.int64)
         self.fp = np.zeros(k, np.int64)
@@ -713,8 +728,8 @@ class Evaluator:
         self.class_names = tuple(class_names)
         self.num_classes = len(self.class_names)
         self.iou_thresholds = _check_thresholds(iou_thresholds)
-        self.miou_match_iou = float(miou_match_iou)
-        self.reset()  # checks miou_match_iou
+        self.miou_match_iou = _check_iou("miou_match_iou", miou_match_iou, low_open=True)
+        self.reset()
 
     def reset(self) -> None:
         self._ap_frames: list[_APFrame] = []
