@@ -240,16 +240,7 @@ class Frame:
 
 def _file_frames(paths: list[Path]) -> Iterator[Frame]:
     for path in paths:
-        if not path.is_file():  # named like a cloud: a user's scan must not vanish unsaid
-            kind = (
-                "a folder" if path.is_dir()
-                else "a broken or looping symlink" if path.is_symlink()
-                else "a pipe, socket or device"
-            )  # fmt: skip
-            error = kitti.DatasetError(f"{path}: {kind}, not a cloud file")
-            yield Frame(path.stem, None, error=error)
-            continue
-        try:
+        try:  # a name like a cloud's on no file is a bad frame too (read_cloud's check)
             yield Frame(path.stem, read_cloud(path))
         except (ValueError, OSError) as e:  # DatasetError, or an unreadable file
             yield Frame(path.stem, None, error=e)

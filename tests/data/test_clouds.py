@@ -311,3 +311,38 @@ def test_trailing_bytes_headers_without_height_and_upper_case_suffixes(tmp_path)
     kitti.write_points(tmp_path / "SCAN.BIN", POINTS)
     for suffix in ("PCD", "NPY", "BIN"):
         np.testing.assert_array_equal(clouds.read_cloud(tmp_path / f"SCAN.{suffix}"), POINTS)
+
+
+def test_readers_name_what_is_no_cloud_file_and_never_block_on_a_pipe(tmp_path):
+    """read_cloud / read_points / read_pcd / read_npy called directly (not through predict's
+    listing) on a pipe blocked forever in open(); a folder or a dangling symlink gave
+    IsADirectoryError / FileNotFoundError without saying what the path is."""
+    import os
+    import threading
+
+    os.mkfifo(tmp_path / "scan.npy")
+    (tmp_path / "scan.pcd").mkdir()
+    (tmp_path / "scan.bin").symlink_to(tmp_path / "unmounted.bin")
+    kinds = {"npy": "a pipe, socket or device", "pcd": "a folder",
+             "bin": "a broken or looping symlink"}  # fmt: skip
+    readers = {"npy": clouds.read_npy, "pcd": clouds.read_pcd, "bin": kitti.read_points}
+    errors = {}
+
+    def read_all():
+        for ext in kinds:
+            for read in (clouds.read_cloud, readers[ext]):
+                try:
+                    read(tmp_path / f"scan.{ext}")
+                except Exception as e:  # noqa: BLE001 - the test checks what was raised
+                    errors[ext, read.__name__] = e
+
+    reading = threading.Thread(target=read_all, daemon=True)
+    reading.start()
+    reading.join(timeout=30)
+    assert not reading.is_alive(), "a read blocked"
+    assert len(errors) == 6
+    for (ext, _), e in errors.items():
+        assert isinstance(e, kitti.DatasetError)
+        assert str(e) == f"{tmp_path / f'scan.{ext}'}: {kinds[ext]}, not a cloud file"
+    with pytest.raises(FileNotFoundError):  # a missing file stays the read's own error
+        clouds.read_cloud(tmp_path / "missing.bin")

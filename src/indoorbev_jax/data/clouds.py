@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from indoorbev_jax.data.kitti import DatasetError, read_points
+from indoorbev_jax.data.kitti import DatasetError, check_cloud_file, read_points
 from indoorbev_jax.geometry import as_points
 
 SUFFIXES = (".bin", ".pcd", ".npy")
@@ -68,6 +68,7 @@ def _columns(path: Path, names: list[str], get) -> np.ndarray:
 def read_npy(path: str | os.PathLike) -> np.ndarray:
     """float32 [N, 4] from a ``.npy`` array (see the module docstring)."""
     path = Path(path)
+    check_cloud_file(path)
     try:
         with open(path, "rb") as f:
             magic = f.read(6)
@@ -132,6 +133,7 @@ def _parse_pcd_header(path: Path, data: bytes) -> tuple[dict[str, list[str]], in
 def read_pcd(path: str | os.PathLike) -> np.ndarray:
     """float32 [N, 4] from a PCL ``.pcd`` file (see the module docstring)."""
     path = Path(path)
+    check_cloud_file(path)
     data = path.read_bytes()
     header, offset = _parse_pcd_header(path, data)
     for key in ("FIELDS", "SIZE", "TYPE", "DATA"):

@@ -180,9 +180,24 @@ def remove_stale_temporaries(folder: Path, names: str, min_age: float = 60.0) ->
 # Points ------------------------------------------------------------------------------------
 
 
+def check_cloud_file(path: Path) -> None:
+    """Raises ``DatasetError`` when ``path`` names something that is no regular file (a
+    folder, a broken symlink, a pipe that would block the read forever); a missing path is
+    left to the read's own ``FileNotFoundError``."""
+    if path.is_file() or not (path.exists() or path.is_symlink()):
+        return
+    kind = (
+        "a folder" if path.is_dir()
+        else "a broken or looping symlink" if path.is_symlink()
+        else "a pipe, socket or device"
+    )  # fmt: skip
+    raise DatasetError(f"{path}: {kind}, not a cloud file")
+
+
 def read_points(path: str | os.PathLike) -> np.ndarray:
     """Reads a ``velodyne/*.bin`` file: float32 [N, 4] = (x, y, z, intensity)."""
     path = Path(path)
+    check_cloud_file(path)
     size = path.stat().st_size
     if size % 16:
         raise DatasetError(
