@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
 import io
 import statistics
 import time
@@ -179,6 +180,10 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"--{flag.replace('_', '-')} must be at least 1")
     if args.eval_frames < args.eval_batch:
         parser.error(f"--eval-frames {args.eval_frames}: at least --eval-batch {args.eval_batch}")
+    if not args.skip_pycocotools and importlib.util.find_spec("pycocotools") is None:
+        parser.error(
+            "pycocotools is not installed (pip install -e .[dev]); or add --skip-pycocotools"
+        )
 
     rng = np.random.default_rng(0)
     h = w = args.size

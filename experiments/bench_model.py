@@ -25,7 +25,7 @@ names the options, and ``--xla-vs`` variants set others on top.
 Needs ``torch==2.13.0`` in the venv for the peer (benchmark-only, not a dependency)::
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_model.py --preset small --mode train \
-        --batch 4 --peer convT2,default
+        --batch 4 --peer convT2,bilinear_conv3
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_model.py --preset paper --mode fwd \
         --batch 1 --reps 3 --peer convT2
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_model.py --preset paper --mode train \
@@ -50,7 +50,7 @@ import numpy as np
 import optax
 
 from indoorbev_jax import host_memory
-from indoorbev_jax.cli import HelpFormatter, nonnegative_int, positive_int
+from indoorbev_jax.cli import HelpFormatter, nonnegative_float, nonnegative_int, positive_int
 from indoorbev_jax.config import Config, ConfigError, with_overrides
 from indoorbev_jax.models import IndoorBEV
 from indoorbev_jax.xla_flags import train_compiler_options
@@ -190,12 +190,28 @@ def build_peer(preset: str, mode: str, batch: int, up_mode: str, bf16: bool = Fa
     return run, sum(p.numel() for p in model.parameters()), str(device)
 
 
-def _peer_gpu_peak_gib() -> float | None:
-    """torch's peak CUDA allocation, None where the peer did not run on a GPU."""
+# The peer's upsampler modes (torch_indoorbev's up_mode): anything else built the bilinear
+# one under the name given.
+PEER_UP_MODES = ("convT2", "bilinear_conv3")
+
+
+def _peer_cuda():
+    """torch where the peer runs on a GPU, else None."""
     torch = sys.modules.get("torch")
     if torch is None or not torch.cuda.is_available() or not torch.cuda.is_initialized():
         return None
-    return torch.cuda.max_memory_allocated() / 2**30
+    return torch
+
+
+def _peer_gpu_peak_gib() -> float | None:
+    """torch's peak CUDA allocation since the last reset, None off the GPU."""
+    torch = _peer_cuda()
+    return None if torch is None else torch.cuda.max_memory_allocated() / 2**30
+
+
+def _reset_peer_gpu_peak() -> None:
+    if (torch := _peer_cuda()) is not None:
+        torch.cuda.reset_peak_memory_stats()
 
 
 def _peak_rss_gib() -> float:
@@ -235,7 +251,11 @@ def main(argv=None):
     ap.add_argument(
         "--bf16", action="store_true", help="bfloat16 computation (ours; the peer's by autocast)"
     )
-    ap.add_argument("--peer", default="convT2", help="comma list of peer up_modes, or none")
+    ap.add_argument(
+        "--peer",
+        default="convT2",
+        help=f"comma list of peer up_modes ({', '.join(PEER_UP_MODES)}), or none",
+    )
     ap.add_argument(
         "--only",
         default="both",
@@ -259,7 +279,7 @@ def main(argv=None):
     )
     ap.add_argument(
         "--settle",
-        type=float,
+        type=nonnegative_float,
         default=0.5,
         help="seconds idle before each timed run: torch's OpenMP workers and XLA's thread pool "
         "spin-wait after a step, and on 2 cores that spinning would be charged to the next side",
@@ -271,6 +291,8 @@ def main(argv=None):
         ap.error(f"--xla-vs expects NAME=VALUE, got {bad[0]!r}")
 
     peers = [] if a.only == "jax" or a.peer == "none" else a.peer.split(",")
+    if unknown := [mode for mode in peers if mode not in PEER_UP_MODES]:
+        ap.error(f"--peer: unknown up_mode {unknown[0]!r}; expected {', '.join(PEER_UP_MODES)}")
     # Refused before ours compiles (minutes for paper), not after.
     if peers and a.preset == "tiny":
         ap.error("the peer has no tiny preset; add --only jax")
@@ -283,6 +305,8 @@ def main(argv=None):
         ap.error(str(e))
     label = f"{a.preset} {a.mode} B={a.batch}" + (" bf16" if a.bf16 else "")
     label += f" [{' '.join(a.set)}]" if a.set else ""
+    if peers and (a.set or a.vs):
+        print(f"note: --set / --vs change ours only; the peer is its {a.preset} preset as built")
     if peers and a.preset == "small":
         note = "the peer's small preset is another network than ours (full memory, no skips, "
         print(f"note: {note}no mask prior): only paper is like for like (docs/BENCHMARKS.md)")
@@ -329,12 +353,16 @@ def main(argv=None):
         for _ in range(a.warmup):
             run()
     times = {k: [] for k in runners}
+    peer_peaks: dict[str, float] = {}  # per peer: the other peers' runs are not counted
     for _ in range(a.reps):  # interleaved: each rep runs every side once
         for k, run in runners.items():
             time.sleep(a.settle)
+            _reset_peer_gpu_peak()
             t0 = time.perf_counter()
             run()
             times[k].append(time.perf_counter() - t0)
+            if k.startswith("torch[") and (peak := _peer_gpu_peak_gib()) is not None:
+                peer_peaks[k] = max(peer_peaks.get(k, 0.0), peak)
     med = {k: statistics.median(v) for k, v in times.items()}
     for k, v in times.items():
         runs = " ".join(f"{t * 1e3:.0f}" for t in v)
@@ -348,9 +376,9 @@ def main(argv=None):
         f"{label}: peak RSS of this process {_peak_rss_gib():.2f} GiB "
         f"(sides: {', '.join(runners)}), load average {os.getloadavg()[0]:.1f}"
     )
-    peer_gpu = _peer_gpu_peak_gib()
-    if peer_gpu is not None:
-        print(f"{label}: torch peak CUDA memory allocated {peer_gpu:.2f} GiB")
+    for k, peak in peer_peaks.items():
+        held = " (with the other peers' weights held)" if len(peer_peaks) > 1 else ""
+        print(f"{label}: {k} peak CUDA memory allocated {peak:.2f} GiB{held}")
 
 
 if __name__ == "__main__":

@@ -41,7 +41,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from indoorbev_jax.cli import HelpFormatter
+from indoorbev_jax.cli import HelpFormatter, positive_float, seed_int
 from indoorbev_jax.config import Config, InferenceConfig
 from indoorbev_jax.predict import export_model
 from indoorbev_jax.ros2 import runtime
@@ -90,6 +90,13 @@ def _run_phase(node, pub, received: dict, clouds: list, rate: float, count: int)
     """Publishes ``count`` clouds at ``rate`` Hz; returns their stamps."""
     ts = typestore()
     raws = [bytes(ts.serialize_cdr(cloud_msg(ts, c, 0, "lidar"), POINTCLOUD2)) for c in clouds]
+    # The node's "ready" precedes DDS discovery: clouds published before it sees our topic
+    # are lost, and the first measured ones would pay the set-up the warm-ups are for.
+    deadline = time.monotonic() + 60
+    while pub.get_subscription_count() == 0 or node.count_publishers(OUT_TOPIC) == 0:
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the detect node did not connect to {IN_TOPIC} / {OUT_TOPIC}")
+        time.sleep(0.05)
     for raw in raws[:3]:  # first messages pay for buffer set-up; stamp 0 keeps them out of
         pub.publish(raw)  # the node's statistics
         time.sleep(1.0)
@@ -157,7 +164,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument(
         "--latency-rate",
-        type=float,
+        type=positive_float,
         default=1.0,
         help="publish rate (Hz) of the latency phase, slow enough not to queue",
     )
@@ -165,21 +172,24 @@ def main(argv: list[str] | None = None) -> None:
         "--latency-frames", type=int, default=20, help="clouds published in the latency phase"
     )
     parser.add_argument(
-        "--rate", type=float, default=10.0, help="publish rate (Hz) of the sensor-rate phase"
+        "--rate",
+        type=positive_float,
+        default=10.0,
+        help="publish rate (Hz) of the sensor-rate phase",
     )
     parser.add_argument(
         "--max-rate",
-        type=float,
+        type=positive_float,
         default=50.0,
         help="publish rate (Hz) of the saturated phase, above what the node can answer",
     )
     parser.add_argument(
         "--seconds",
-        type=float,
+        type=positive_float,
         default=20.0,
         help="seconds of publishing per throughput phase (sensor rate, saturated)",
     )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated scenes")
+    parser.add_argument("--seed", type=seed_int, default=0, help="seed of the simulated scenes")
     args = parser.parse_args(argv)
     counts = {
         "--latency-frames": args.latency_frames,
@@ -189,8 +199,6 @@ def main(argv: list[str] | None = None) -> None:
     for flag, count in counts.items():
         if count < 2:
             parser.error(f"{flag} gives {count} clouds; a phase needs at least 2")
-    if min(args.latency_rate, args.rate, args.max_rate) <= 0:
-        parser.error("--latency-rate, --rate and --max-rate must be > 0")
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))

@@ -16,6 +16,7 @@ import statistics
 import time
 
 import jax
+import numpy as np
 
 from indoorbev_jax.cli import HelpFormatter, nonnegative_int, positive_int
 from indoorbev_jax.config import Config
@@ -44,7 +45,7 @@ def bench_preset(name: str, steps: int, batch_size: int | None, sweep_k: int) ->
     state = init_state(config, jax.random.key(0))
     step = jit_train_step(config, make_train_step(config))
     compile_s = _time(lambda: step.lower(state, batch, key, hyper).compile())
-    state, _ = jax.block_until_ready(step(state, batch, key, hyper))  # warm-up, waited for
+    state, first = jax.block_until_ready(step(state, batch, key, hyper))  # warm-up, waited for
     times = []
     for _ in range(steps):
         t = _time(lambda: step(state, batch, key, hyper))
@@ -61,7 +62,16 @@ def bench_preset(name: str, steps: int, batch_size: int | None, sweep_k: int) ->
     states = init_sweep(config, sweep_k, jax.random.key(0))
     sweep = make_sweep_step(config)
     sweep_compile = _time(lambda: sweep.lower(states, batch, key, hypers).compile())
-    states, _ = jax.block_until_ready(sweep(states, batch, key, hypers))
+    states, members = jax.block_until_ready(sweep(states, batch, key, hypers))
+    # K copies of the first step: each member's metrics are the single step's (same state,
+    # batch, key and Hyper), up to the reduction order of the batched kernels.
+    pairs = zip(jax.tree_util.tree_leaves_with_path(first), jax.tree.leaves(members), strict=True)
+    for (path, one), many in pairs:
+        if not np.allclose(np.asarray(many), np.asarray(one), rtol=1e-3, atol=1e-5):
+            raise SystemExit(
+                f"{name}: the vmapped step's {jax.tree_util.keystr(path)} {many} differs "
+                f"from the single step's {np.asarray(one)}: not timed"
+            )
     vmapped, sequential = [], []
     for _ in range(steps):
         vmapped.append(_time(lambda: sweep(states, batch, key, hypers)))

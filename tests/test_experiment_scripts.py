@@ -414,6 +414,12 @@ def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
         ("bench_views", ["--reps", "0"], "argument --reps: must be > 0, got 0"),
         ("bench_model", ["--only", "jax", "--set", "head.nope=1"], "head has no field 'nope'"),
         ("bench_metrics", ["--eval-frames", "1"], "--eval-frames 1: at least --eval-batch 4"),
+        # Before 2026-12-07 (morning): a traceback after compiling, or a typo'd peer timed
+        # as the bilinear one under the name given.
+        ("bench_lidar", ["--settle", "-1"], "argument --settle: must be a finite number >= 0"),
+        ("bench_model", ["--settle", "nan"], "argument --settle: must be a finite number >= 0"),
+        ("bench_model", ["--peer", "convt2"], "--peer: unknown up_mode 'convt2'; expected"),
+        ("bench_ros2", ["--rate", "nan"], "argument --rate: must be a finite number > 0, got nan"),
         ("eval_sim", ["--model", "m", "--batch", "0"], "argument --batch: must be > 0, got 0"),
         ("eval_sim", ["--model", "m", "--frames", "-8"], "argument --frames: must be > 0, got -8"),
         ("pose_errors", ["--model", "none.msgpack"], "none.msgpack: no such model file or run"),
@@ -652,3 +658,38 @@ def test_a_backend_this_machine_lacks_is_one_line():
     assert run.returncode == 2, run.stderr
     assert run.stderr.startswith("probe: error: JAX_PLATFORMS=nosuch: no such backend here")
     assert len(run.stderr.strip().splitlines()) == 1
+
+
+def test_benchmarks_refuse_to_time_a_wrong_answer():
+    """A benchmark checks both sides agree before it times them: an identity "matcher" was
+    timed and its ratio printed, and a caster 1 % long gave speed-ups with 0 % agreement."""
+    import numpy as np
+    from scipy.optimize import linear_sum_assignment
+
+    bench = _script("bench_matching")
+    rng = np.random.default_rng(3)
+    cost = rng.random((4, 6, 5)).astype(np.float32)
+    valid = np.ones((4, 5), bool)
+    valid[1, 3:] = False
+    cols = np.broadcast_to(np.arange(5), (4, 5))
+    right = np.zeros((4, 5), np.int64)
+    for b in range(4):
+        rows, picked = linear_sum_assignment(cost[b][:, valid[b]])
+        right[b, np.flatnonzero(valid[b])[picked]] = rows
+        right[b, ~valid[b]] = 5  # padded targets: anything
+    assert bench._check_totals("ours", right, cols, cost, valid) <= 1e-6
+    identity = np.broadcast_to(np.arange(5), (4, 5))
+    with pytest.raises(
+        SystemExit, match=r"ours: frame 0 matched 5 of 5 targets at total .* scipy's"
+    ):
+        bench._check_totals("ours", identity, cols, cost, valid)
+    # A matcher that leaves a valid target out is refused whatever its total.
+    with pytest.raises(SystemExit, match="ours: frame 0 matched 4 of 5 targets"):
+        bench._check_totals("ours", [right[0][:4]], [cols[0][:4]], cost[:1], valid[:1])
+    lidar_bench = _script("bench_lidar")
+    ok = np.ones(100_000, bool)
+    ok[:10] = False  # 1 in 10^4 may disagree (float32 grazing rays)
+    lidar_bench.check_agreement("ours", ok)
+    ok[10] = False
+    with pytest.raises(SystemExit, match="ours: 11 of 100000 rays disagree with mj_multiRay"):
+        lidar_bench.check_agreement("ours", ok)
