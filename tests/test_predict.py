@@ -800,6 +800,8 @@ def test_input_errors_name_the_path_and_empty_clouds_are_said(model_file, tmp_pa
     summary = P.predict(model_file, tmp_path / "far.bin", tmp_path / "o", pictures=False)
     assert summary["empty_frames"] == ["far"]
     printed = capsys.readouterr().out
+    # One frame, the one that compiles: no latency to give (it would be the compile time).
+    assert "latency_ms" not in summary and "ms/frame" not in printed
     assert (
         "none of its 50 points is valid (10 non-finite, 5 within sim.min_range=0.1 m of the "
         "sensor, 35 outside the workspace x [" in printed

@@ -372,6 +372,26 @@ def test_a_closed_recording_leaves_no_partial_folder(tmp_path):
         shutil.rmtree(tmp_path / "bag")
 
 
+def test_a_writer_that_fails_to_close_is_reported_and_the_bag_left_partial(tmp_path, monkeypatch):
+    """The writer's close flushes the mcap footer or commits sqlite: a full disk there must
+    reach the caller, not move a truncated bag into place as if it were whole."""
+    from rosbags.rosbag2 import Writer
+
+    close = Writer.close
+
+    def full_disk(self):
+        close(self)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Writer, "close", full_disk)
+    for storage in ("sqlite3", "mcap"):
+        rec = BagRecorder(tmp_path / storage, {"/a": POINTCLOUD2}, TS, storage)
+        rec.write("/a", 2, _raw_cloud(_scan(20)))
+        with pytest.raises(RuntimeError, match=rf"{storage}: recording failed: .*No space left"):
+            rec.close()
+        assert rec.partial.is_dir() and not (tmp_path / storage).exists()
+
+
 def test_sim_to_detect_loop(model, tmp_path, monkeypatch):
     pytest.importorskip("rclpy", reason="the ros extra is not installed (pip install -e .[ros])")
     from rclpy.serialization import deserialize_message

@@ -11,6 +11,7 @@ import pytest
 from indoorbev_jax.config import Config
 from indoorbev_jax.models.head import depth_to_space
 from indoorbev_jax.models.swin import (
+    PatchEmbed,
     PatchMerging,
     SwinBackbone,
     SwinBlock,
@@ -76,6 +77,25 @@ def test_patch_merging_matches_numpy():
     ref = _layer_norm(cat, pp["norm"]["scale"], pp["norm"]["bias"]) @ pp["reduction"]["kernel"]
     assert "bias" not in pp["reduction"]
     np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize(("stride", "c_in"), [(1, 7), (2, 5)])
+def test_patch_embed_is_a_projection_then_layer_norm(stride, c_in):
+    """Swin's PatchEmbed: s x s patches (channels in PatchMerging's order: column offset,
+    then row offset), a linear map, then LayerNorm. With stride 1 and C_in equal to the
+    features (the paper preset), LayerNorm before the projection loads the same checkpoint."""
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(2, 6, 8, c_in)).astype(np.float32) * 3 + 1
+    mod = PatchEmbed(features=7, stride=stride)
+    params = mod.init(jax.random.key(0), jnp.asarray(x))
+    p = jax.tree.map(lambda a: a + rng.normal(size=a.shape).astype(np.float32) * 0.1, params)
+    out = np.asarray(mod.apply(p, jnp.asarray(x)))
+    b, h, w, c = x.shape
+    s = stride
+    patches = x.reshape(b, h // s, s, w // s, s, c).transpose(0, 1, 3, 4, 2, 5)
+    pp = jax.tree.map(np.asarray, p["params"])
+    want = layer_norm(dense(patches.reshape(b, h // s, w // s, -1), pp["proj"]), pp["norm"])
+    np.testing.assert_allclose(out, want, rtol=1e-5, atol=1e-5)
 
 
 def _original_coords(res: tuple[int, int], ws: int, shift: int) -> np.ndarray:
