@@ -210,19 +210,25 @@ class Scene:
     sensor_rpy: jax.Array
 
 
+# How far below the lowest ceiling the lidar must stay: the sensor's body (a MID-360 is 6.5 cm
+# tall) under the slab. Not sim.min_range: a blind zone larger than the gap to the ceiling
+# only drops the returns straight up.
+CEILING_CLEARANCE = 0.1
+
+
 def check_sensor_height(sim: SimConfig) -> None:
-    """Raises ``ValueError`` when ``sim.sensor_height`` reaches within ``sim.min_range`` of
-    the lowest ceiling of ``sim.layouts``: a lidar in or above the ceiling slab sees no
+    """Raises ``ValueError`` when ``sim.sensor_height`` reaches within ``CEILING_CLEARANCE``
+    of the lowest ceiling of ``sim.layouts``: a lidar in or above the ceiling slab sees no
     object, and its frames would come out without targets, unannounced."""
     kinds = [layouts.LAYOUTS[layouts.LAYOUT_INDEX[k]] for k in sim.layouts]
     lowest = min(k.ceiling[0] for k in kinds)
-    if sim.sensor_height[1] > lowest - sim.min_range:
+    if sim.sensor_height[1] > lowest - CEILING_CLEARANCE:
         low = [k.name for k in kinds if k.ceiling[0] == lowest]
         raise ValueError(
             f"sim.sensor_height: up to {sim.sensor_height[1]} m reaches the ceiling: the lowest "
             f"ceilings ({', '.join(low)} rooms) are {lowest} m, so the lidar must stay below "
-            f"{lowest - sim.min_range:.2f} m (the ceiling less sim.min_range); or leave "
-            f"{', '.join(low)} out of sim.layouts"
+            f"{lowest - CEILING_CLEARANCE:.2f} m ({CEILING_CLEARANCE} m under the ceiling "
+            f"slab); or leave {', '.join(low)} out of sim.layouts"
         )
 
 

@@ -374,19 +374,22 @@ def test_max_scene_objects_caps_the_objects_placed():
     assert placed.max() == cap, placed
 
 
-def test_a_lidar_within_min_range_of_the_ceiling_is_refused():
-    """``check_sensor_height`` keeps the lidar ``sim.min_range`` below the lowest ceiling
-    (its docstring): a height between the ceiling less min_range and the ceiling itself is
-    refused, one just below that margin is accepted (only heights above the ceiling were
-    tested; the margin dropped passed; a mutation audit)."""
+def test_a_lidar_within_its_clearance_of_the_ceiling_is_refused():
+    """``check_sensor_height`` keeps the lidar ``CEILING_CLEARANCE`` below the lowest ceiling
+    (its docstring): a height between the ceiling less the clearance and the ceiling itself
+    is refused, one just below that margin is accepted (only heights above the ceiling were
+    tested; the margin dropped passed; a mutation audit). The blind zone plays no part: a
+    0.6 m gap with sim.min_range 0.8 was refused as "reaches the ceiling" (helper-107)."""
     lowest = min(layouts.LAYOUTS[layouts.LAYOUT_INDEX[k]].ceiling[0] for k in CFG.sim.layouts)
     assert lowest == 2.5  # corridors
-    m = CFG.sim.min_range
+    m = scenes.CEILING_CLEARANCE
     near = round(lowest - m / 2, 6)
     with pytest.raises(ValueError, match=f"sim.sensor_height: up to {near} m reaches the ceiling"):
         scenes.check_sensor_height(dataclasses.replace(CFG.sim, sensor_height=(near, near)))
     ok = round(lowest - 1.5 * m, 6)
     scenes.check_sensor_height(dataclasses.replace(CFG.sim, sensor_height=(ok, ok)))
+    blind = dataclasses.replace(CFG.sim, sensor_height=(1.6, 1.9), min_range=0.8)
+    scenes.check_sensor_height(blind)
 
 
 def _all_rooms(per):
