@@ -152,6 +152,20 @@ def test_occupancy_grid_on_a_rectangular_off_centre_grid():
     assert centre == (3.25, -0.25)
 
 
+def test_cloud_is_dense_only_without_invalid_points():
+    """PointCloud2's is_dense: "True if there are no invalid points". predict --bag-out
+    passes an organised cloud's NaN returns on, and every cloud was marked dense, so a
+    consumer trusting the flag (PCL) skipped its NaN check (a mutation audit)."""
+    points = _scan(20)
+    assert cloud_msg(TS, points, 1, "lidar").is_dense is True
+    holes = points.copy()
+    holes[3, 1] = np.nan
+    msg = TS.deserialize_cdr(bytes(TS.serialize_cdr(cloud_msg(TS, holes, 1), POINTCLOUD2)),
+                             POINTCLOUD2)  # fmt: skip
+    assert msg.is_dense is False
+    np.testing.assert_array_equal(pointcloud2_to_points(msg), holes)
+
+
 def test_occupancy_grid_layout():
     grid = CFG.grid
     h, w = grid.shape

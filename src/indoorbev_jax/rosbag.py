@@ -70,7 +70,9 @@ def header(ts, stamp_ns: int, frame: str = "lidar"):
 
 
 def cloud_msg(ts, points: np.ndarray, stamp_ns: int, frame: str = "lidar"):
-    """A PointCloud2 of float32 x, y, z, intensity from points [N, 4]."""
+    """A PointCloud2 of float32 x, y, z, intensity from points [N, 4]; ``is_dense`` says
+    whether every point is valid (finite x, y, z), as the message definition has it:
+    ``predict --bag-out`` passes on a driver's organised cloud with its NaN points."""
     t = ts.types
     field = t["sensor_msgs/msg/PointField"]
     fields = [
@@ -87,7 +89,7 @@ def cloud_msg(ts, points: np.ndarray, stamp_ns: int, frame: str = "lidar"):
         point_step=16,
         row_step=16 * len(data),
         data=data.view(np.uint8).reshape(-1),
-        is_dense=True,
+        is_dense=bool(np.isfinite(data[:, :3]).all()),
     )
 
 
