@@ -389,3 +389,145 @@ def test_reference_frame_labels_objects_on_a_workspace_not_centred_on_the_sensor
         np.testing.assert_array_equal(slots, np.flatnonzero(ref["labelled"]))
         far_back += int((batch.targets.pos[b][batch.targets.valid[b], 0] < -2).sum())
     assert far_back, "no labelled object behind x = -2: the case is not exercised"
+
+
+def test_pipeline_ellipses_and_discs_have_their_analytic_footprints():
+    """The pipeline rasterises with ``_prim_masks`` (``footprints``), not with
+    ``stadium_masks``/``ellipse_masks``, so the analytic areas of the SIMULATOR.md rule
+    ("ellipsoids ellipses, upright cylinders discs, capsules stadiums - exact projections")
+    are checked on it too: an ellipse keeps its first semi-axis along yaw (a point 0.8 m
+    along yaw from the centre of a 0.9 x 0.4 ellipse is inside, 0.5 m across is not) and
+    equals ``ellipse_masks``. Its axes swapped turned every person torso and plant foliage
+    by 90 degrees and passed every test (a mutation audit)."""
+    xs, ys = (np.asarray(a) for a in cell_centers(FINE))
+    cell = FINE.cell_size**2
+    c, yaw, size = np.array([0.3, -0.2]), 0.7, np.array([[0.9, 0.4, 0.3]])
+    dx = jnp.asarray(xs[None, None, :] - c[0])
+    dy = jnp.asarray(ys[None, :, None] - c[1])
+    ell = np.asarray(labels._prim_masks(
+        objects.ELLIPSE, dx, dy, jnp.array([yaw]), jnp.asarray(size), jnp.zeros(1),
+        np.zeros(1, bool), FINE.cell_size,
+    ))[0]  # fmt: skip
+    assert ell.sum() * cell == pytest.approx(math.pi * 0.9 * 0.4, rel=0.01)
+    along = np.cos(yaw) * (xs[None, :] - c[0]) + np.sin(yaw) * (ys[:, None] - c[1])
+    across = -np.sin(yaw) * (xs[None, :] - c[0]) + np.cos(yaw) * (ys[:, None] - c[1])
+    inside = (along / 0.9) ** 2 + (across / 0.4) ** 2 <= 1.0
+    assert (ell != inside).sum() <= 4  # cells on the boundary only
+    assert ell[(np.abs(along - 0.8) < 0.01) & (np.abs(across) < 0.01)].all()
+    assert not ell[(np.abs(across - 0.5) < 0.01) & (np.abs(along) < 0.01)].any()
+    ref = labels.ellipse_masks(jnp.asarray(c[None]), jnp.asarray(size[:, :2]), jnp.array([yaw]),
+                               FINE)  # fmt: skip
+    np.testing.assert_array_equal(ell, np.asarray(ref)[0])
+    # Upright cylinder (radius 0.6): a disc; a capsule of half length 0.5 lying along yaw
+    # (pitch 90 degrees), radius 0.25: a stadium of length 1.0 between its caps.
+    disc = labels._prim_masks(
+        objects.STADIUM, dx, dy, jnp.array([yaw]), jnp.array([[0.6, 0.4, 0.0]]),
+        jnp.zeros(1), np.zeros(1, bool), FINE.cell_size,
+    )  # fmt: skip
+    assert disc.sum() * cell == pytest.approx(math.pi * 0.36, rel=0.01)
+    stad = labels._prim_masks(
+        objects.STADIUM, dx, dy, jnp.array([yaw]), jnp.array([[0.25, 0.5, 0.0]]),
+        jnp.array([math.pi / 2]), np.zeros(1, bool), FINE.cell_size,
+    )  # fmt: skip
+    assert stad.sum() * cell == pytest.approx(math.pi * 0.0625 + 0.5 * 1.0, rel=0.01)
+
+
+def test_horizontal_cylinders_are_rectangles_along_their_axis():
+    """A horizontal cylinder (``hcyl``: size (r, half length), axis along yaw) projects to a
+    2 half-length x 2 r rectangle along yaw, equal to ``rasterize.box_masks`` of that box
+    (SIMULATOR.md, Labels: "horizontal cylinders are rectangles (equal to
+    rasterize.box_masks)"). Treating it as a box with (r, half length) turned the wheels
+    of boxy robots by 90 degrees and passed every test (a mutation audit)."""
+    from indoorbev_jax.data.rasterize import box_masks
+
+    grid = GridConfig(x_range=(-2.0, 2.0), y_range=(-2.0, 2.0), cell_size=0.05)
+    xs, ys = (np.asarray(a) for a in cell_centers(grid))
+    boxes = np.array([[0.2, -0.1, 1.0, 0.2, 0.3], [-0.7, 0.5, 0.6, 0.3, -1.1]], np.float32)
+    size = np.array([[0.1, 0.5, 0.0], [0.15, 0.3, 0.0]], np.float32)  # (r, half length)
+    dx = jnp.asarray(xs[None, None, :] - boxes[:, 0, None, None])
+    dy = jnp.asarray(ys[None, :, None] - boxes[:, 1, None, None])
+    ours = labels._prim_masks(
+        objects.RECT, dx, dy, jnp.asarray(boxes[:, 4]), jnp.asarray(size), jnp.zeros(2),
+        np.ones(2, bool), grid.cell_size,
+    )  # fmt: skip
+    np.testing.assert_array_equal(ours, box_masks(jnp.asarray(boxes), grid))
+
+
+@pytest.fixture(scope="module")
+def drawn():
+    """64 frames' scenes and times as ``generate_batch`` draws them (no rays cast)."""
+    return generate.jitted_draw(CFG, "train", 64)(jax.random.key(0))
+
+
+def test_frame_times_lie_within_the_sequence(drawn):
+    """A batch frame is "anywhere along the sequence" (draw_frames): its time lies in
+    [0, (T - 1) frame_dt], the span over which placement reserved every moving object's
+    path (SIMULATOR.md, Placement). Times up to 1 s past a 0.1 s sequence put objects past
+    their reserved paths and passed every test (a mutation audit)."""
+    _, time, _, _ = drawn
+    time = np.asarray(time)
+    span = (CFG.sim.frames_per_sequence - 1) * CFG.sim.frame_dt
+    assert time.min() >= 0.0 and time.max() <= span + 1e-6
+    assert time.max() - time.min() > 0.5 * span  # spread over the span, not one instant
+
+
+def test_exactly_min_points_returns_make_a_target(drawn):
+    """Targets have "at least sim.min_points (5) valid returns and the box centre inside
+    the workspace" (SIMULATOR.md): ``object_labels`` with exactly min_points crafted returns
+    on a slot whose centre is inside labels it, 4 returns do not, and 20 returns on a slot
+    whose centre is outside do not. ``counts > min_points`` passed every test (a mutation
+    audit: real frames rarely give an object exactly 5 returns)."""
+    from indoorbev_jax.geometry import on_grid
+
+    tpl = scenes.template_for(CFG)
+    scene_b, time_b, _, _ = drawn
+    n = CFG.sim.min_points
+    assert n == 5
+    rays = 64
+    sizes, pn = tpl.num_slots, tpl.prim_geom.shape[1]
+    vis = jnp.asarray(np.repeat(np.arange(sizes), pn).astype(np.int32))  # every ray sees its own
+    label = jax.jit(lambda sc, t, o, h, slot, valid: labels.object_labels(
+        tpl, sc, t, o, h, slot, valid, vis, CFG))  # fmt: skip
+    for b in range(time_b.shape[0]):  # the first scene with a slot on each side of the edge
+        sc = jax.tree.map(lambda x, b=b: x[b], scene_b)
+        t = time_b[b]
+        origin, heading = scenes.sensor_pose(sc, t)
+        pos, _, _ = labels.box_labels(tpl, sc, t, origin, heading)
+        grid_in = np.asarray(on_grid(pos[:, 0], pos[:, 1], CFG.grid))
+        on = np.asarray(sc.on)
+        ins, outs = np.flatnonzero(grid_in & on), np.flatnonzero(~grid_in & on)
+        if len(ins) and len(outs):
+            break
+    else:
+        pytest.fail("no scene with objects both inside and outside the workspace")
+    for k, want in ((n, True), (n - 1, False)):
+        slot = np.full(rays, -1, np.int32)
+        valid = np.zeros(rays, bool)
+        slot[:k], valid[:k] = ins[0], True
+        slot[10:30], valid[10:30] = outs[0], True
+        lab = label(sc, t, origin, heading, jnp.asarray(slot), jnp.asarray(valid))
+        assert int(lab.num_points[ins[0]]) == k
+        assert bool(lab.labelled[ins[0]]) is want, k
+        assert int(lab.num_points[outs[0]]) == 20 and not bool(lab.labelled[outs[0]])
+
+
+def test_visibility_rays_inside_min_range_are_not_fired():
+    """Visibility counts only rays "beyond sim.min_range" (SIMULATOR.md, Occlusion). At the
+    default 0.1 m no primitive comes that close (EGO_RADIUS + clearance), so sim.min_range
+    is raised to 1.5 m, where the reference pipeline (``reference_frame``) drops some
+    visibility rays. Ignoring min_range for them passed every test (a mutation audit)."""
+    cfg = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, min_range=1.5))
+    batch, info = jax.tree.map(np.asarray, generate.jitted_generate(cfg, "train", B)(KEY))
+    dirs = generate.make_pattern(cfg.sim).frame(int(info.frame_index[0])).directions
+    n = 0
+    for b in range(B):
+        ref = generate.reference_frame(
+            cfg, generate.scene_numpy(info.scene, b), float(info.time[b]),
+            np.asarray(dirs, np.float64), np.random.default_rng(0),
+        )  # fmt: skip
+        v = batch.targets.valid[b]
+        slots = info.slot[b][v]
+        np.testing.assert_array_equal(slots, np.flatnonzero(ref["labelled"]))
+        np.testing.assert_allclose(info.visibility[b][v], ref["visibility"][slots], atol=1e-6)
+        n += len(slots)
+    assert n > 0

@@ -204,3 +204,19 @@ def test_full_turn_grid_has_no_repeated_seam_column():
     assert len(np.unique(np.round(d, 5), axis=0)) == 720
     columns = np.unwrap(np.arctan2(d[::2, 1], d[::2, 0]))
     np.testing.assert_allclose(np.degrees(np.diff(columns)), 1.0, atol=1e-4)
+
+
+def test_make_pattern_fires_sim_num_rays_per_frame():
+    """``make_pattern(sim)`` is "the scan pattern named by sim.pattern with sim.num_rays
+    rays per frame" (SIMULATOR.md, Rays: MID-360 20,000 = 200k points/s at 10 Hz), its
+    firing times within one frame. A MID-360 firing twice the rays passed every test (a
+    mutation audit)."""
+    from indoorbev_sim import generate
+
+    from indoorbev_jax.config import SimConfig
+
+    for n in (2048, 20000):
+        pattern = generate.make_pattern(SimConfig(pattern="mid360", num_rays=n))
+        frame = pattern.frame(0)
+        assert pattern.num_rays == n and frame.directions.shape == (n, 3)
+        assert float(jnp.max(frame.time_offsets)) < 1 / pattern.frame_rate

@@ -458,3 +458,129 @@ def test_room_size_x_and_y_are_independent_draws():
                    for s, k in zip(rooms.size, kinds, strict=True)])  # fmt: skip
     assert not np.isclose(fx, fy, atol=1e-5).any()
     assert abs(np.corrcoef(fx, fy)[0, 1]) < 0.3
+
+
+def test_bank_objects_follow_the_documented_sizes_and_facing():
+    """The object library's rules (SIMULATOR.md table, objects.py): standing persons are
+    1.55-1.95 m tall, range used; the object frame's -y side is its back, the side a
+    wall-bound object turns to the wall (``ClassSpec.wall_prob``): the sofa's back rest
+    lies on -y and the cabinet's handle on its front, +y; a person's torso ellipsoid is
+    wider across the shoulders (y, where the arms hang) than deep (x, the way it faces).
+    Persons up to 2.15 m, the sofa back or the cabinet handle on the other side and the
+    torso turned by 90 degrees each passed every test (a mutation audit)."""
+    bank = objects.object_bank()
+    person = objects.CLASS_INDEX["Person"]
+    standing = bank.dims[person, objects.CLASSES[person].variants.index("standing"), :, 2]
+    assert standing.min() >= 1.55 - 1e-4 and standing.max() <= 1.95 + 1e-4
+    assert standing.min() < 1.6 and standing.max() > 1.9
+    # Person primitives: legs 0-1, torso 2 (ellipsoid semi-axes x, y, z).
+    assert objects.CLASSES[person].prims[2] == "ellipsoid"
+    torso = bank.size[person, :, :, 2]  # [V, N, 3]
+    assert (torso[..., 1] > torso[..., 0]).all()
+    sofa = objects.CLASS_INDEX["Sofa"]  # prims: base 0, back 1
+    back_y, base_y = bank.pos[sofa, :2, :, 1, 1], bank.pos[sofa, :2, :, 0, 1]
+    assert (back_y < base_y).all() and (back_y < 0).all()
+    cab = objects.CLASS_INDEX["Cabinet"]  # prims: body 0, handle 1, all 3 variants
+    assert (bank.pos[cab, :3, :, 1, 1] > 0).all()
+    assert (bank.pos[cab, :3, :, 1, 1] > bank.pos[cab, :3, :, 0, 1]).all()  # before the body
+
+
+def test_door_widths_are_in_the_documented_range():
+    """ "Each wall has a door gap (0.9-1.6 m)" (SIMULATOR.md, Layouts): every door of 256
+    plans is 0.9-1.6 m wide and the range is used. Doors of 0.5-1.2 m (a mutation audit)
+    passed every test."""
+    rooms, _ = _all_rooms(64)
+    width = rooms.door_hi - rooms.door_lo
+    door = width > 0
+    assert door.sum() > 100
+    assert width[door].min() >= 0.9 - 1e-5 and width[door].max() <= 1.6 + 1e-5
+    assert width[door].min() < 1.0 and width[door].max() > 1.5
+
+
+def test_ceiling_slab_sits_on_the_walls_at_the_room_ceiling(sampled):
+    """The ceiling slab's underside is the room's ceiling height, which is where the walls
+    end (``wall_boxes``: floor to ceiling); a slab 10 cm low, cutting the walls and the
+    room's height short, passed every test (a mutation audit)."""
+    tpl = scenes.template_for(CFG)
+    for b in range(3):
+        one = jax.tree.map(lambda x, b=b: x[b], sampled["train"])
+        size, xpos, _, _ = (np.asarray(a) for a in scenes.geom_state(tpl, one, 0.0))
+        ceiling = float(one.room.ceiling)
+        assert xpos[scenes.CEILING, 2] - size[scenes.CEILING, 2] == pytest.approx(ceiling, abs=1e-5)
+        centre, half = (np.asarray(a) for a in layouts.wall_boxes(one.room))
+        np.testing.assert_allclose(centre[:, 2] + half[:, 2], ceiling, rtol=1e-6)
+
+
+def test_scenes_place_at_most_the_class_counts_and_turn_their_backs_to_walls(sampled):
+    """Per scene and class, at most round(fill x slots) objects (SIMULATOR.md: "uniform
+    0..round(fill x slots)", so no Sofa in labs), and every object placed against a wall
+    ("back to it, 3-12 cm gap", Placement) has its -y side (its back, objects.py) facing
+    that wall: the back edge's midpoint within the gap of the nearest wall, the back's
+    outward direction that wall's normal. One object more per class, and wall-bound
+    objects facing the wall, each passed every test (a mutation audit)."""
+    tpl = scenes.template_for(CFG)
+    slots = CFG.sim.slots_per_class
+    lo_gap, hi_gap = scenes.WALL_GAP
+    at_wall = 0
+    for scene in sampled.values():
+        for b in range(NUM):
+            kind = layouts.LAYOUTS[int(scene.room.kind[b])]
+            for c, spec in enumerate(objects.CLASSES):
+                top = int(np.round(kind.fill.get(spec.name, 0.0) * slots[c]))
+                assert scene.on[b][tpl.slot_class == c].sum() <= top, (kind.name, spec.name)
+            hx, hy = scene.room.size[b] / 2
+            for s in np.flatnonzero(scene.on[b]):
+                x, y, yaw = scene.pose[b, s].astype(np.float64)
+                length, width = scene.prims.dims[b, s, :2].astype(np.float64)
+                back = np.array([np.sin(yaw), -np.cos(yaw)])  # the object's -y, in the world
+                front = np.array([x, y]) - back * width / 2
+                fgaps = [front[1] + hy, hy - front[1], front[0] + hx, hx - front[0]]
+                # Free objects with a random yaw: only those turned square to the walls and
+                # touching one with their front would be wall placements facing the wall.
+                square = abs(np.sin(2 * yaw)) < 1e-4
+                assert not (square and min(fgaps) <= hi_gap + 0.02), (b, s, yaw, fgaps)
+                mid = np.array([x, y]) + back * width / 2
+                gaps = [mid[1] + hy, hy - mid[1], mid[0] + hx, hx - mid[0]]
+                k = int(np.argmin(gaps))
+                if gaps[k] > hi_gap + 0.005:
+                    continue
+                at_wall += 1
+                assert gaps[k] >= lo_gap - 0.005, (b, s, gaps)
+                normal = np.array([[0, -1], [0, 1], [-1, 0], [1, 0]][k])
+                assert back @ normal > 0.999, (b, s, yaw, k)
+    assert at_wall > 10
+
+
+def test_the_lidar_robot_keeps_its_wall_margin_over_the_sequence(sampled):
+    """The lidar robot drives "a straight path inside the room" (scenes.py), its centre at
+    least 0.6 m from every wall at the first and at the last frame (the margin scenes.py
+    draws the start in and checks the end against). Checked on the default 2-frame
+    sequences and on 20-frame ones (2 s, where a path not checked at its end leaves the
+    room). A start drawn over the whole room,
+    and an end never checked, each passed every test (a mutation audit)."""
+    long_cfg = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, frames_per_sequence=20))
+    long_scenes = jax.tree.map(
+        np.asarray, generate.sample_scenes(jax.random.key(7), long_cfg, 64, False)
+    )
+    cases = [(s, CFG) for s in sampled.values()] + [(long_scenes, long_cfg)]
+    for scene, cfg in cases:
+        span = (cfg.sim.frames_per_sequence - 1) * cfg.sim.frame_dt
+        margin = scene.room.size / 2 - 0.6
+        for t in (0.0, span):
+            xy = scene.ego[:, :2] + scene.ego_velocity * t
+            assert (np.abs(xy) <= margin + 1e-5).all(), (t, (margin - np.abs(xy)).min())
+    assert (np.linalg.norm(long_scenes.ego_velocity, axis=-1) > 0).mean() > 0.5  # they drive
+
+
+def test_sensor_height_is_drawn_independently_of_the_plan(sampled):
+    """The lidar's height is a draw of its own in sim.sensor_height (SimConfig), not a
+    function of the room: scenes of one plan get heights spread over the range. A height
+    taken from the plan's draw (every scene of a plan at nearly one height) passed every
+    test (a mutation audit)."""
+    lo, hi = CFG.sim.sensor_height
+    scene = sampled["test"]  # 4 held-out plans: several scenes each
+    spreads = [np.ptp(scene.sensor_height[scene.room.plan == p])
+               for p in np.unique(scene.room.plan)]  # fmt: skip
+    assert max(spreads) > 0.3 * (hi - lo), spreads
+    h = sampled["train"].sensor_height
+    assert h.min() >= lo - 1e-6 and h.max() <= hi + 1e-6
