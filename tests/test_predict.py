@@ -1006,3 +1006,82 @@ def test_a_negative_roll_is_a_value_not_an_option(model_file, tmp_path, capsys):
             "--no-pictures", "--lidar-rpy", "-5,10,0"]  # fmt: skip
     assert cli_main(argv) == 0
     assert "roll -5" in capsys.readouterr().out
+
+
+def test_pointcloud2_intensity_field_wins_over_reflectivity():
+    """An input cloud may carry ``intensity`` (or ``reflectivity``) (docs/ROBOT.md, Topics):
+    an Ouster-style cloud with both, float32 intensity and uint16 reflectivity, must read
+    the ``intensity`` field. A mutation audit: preferring ``reflectivity`` passed."""
+    from indoorbev_jax.rosbag import POINTCLOUD2, header
+
+    ts = typestore()
+    field = ts.types["sensor_msgs/msg/PointField"]
+    names, offsets = ["x", "y", "z", "intensity", "reflectivity"], [0, 4, 8, 16, 20]
+    rows = np.zeros(2, {"names": names, "formats": ["<f4"] * 4 + ["<u2"], "offsets": offsets,
+                        "itemsize": 24})  # fmt: skip
+    rows["x"], rows["y"], rows["z"] = [1.0, 2.0], [-1.0, 0.5], [0.25, 0.75]
+    rows["intensity"], rows["reflectivity"] = [0.25, 0.75], [200, 40]
+    # sensor_msgs/PointField datatype constants: UINT16 = 4, FLOAT32 = 7.
+    fields = [
+        field(name=n, offset=o, datatype=4 if n == "reflectivity" else 7, count=1)
+        for n, o in zip(names, offsets, strict=True)
+    ]
+    msg = ts.types[POINTCLOUD2](
+        header=header(ts, 1, "os_sensor"), height=1, width=2, fields=fields,
+        is_bigendian=False, point_step=24, row_step=48, data=rows.view(np.uint8).reshape(-1),
+        is_dense=True,
+    )  # fmt: skip
+    msg = ts.deserialize_cdr(ts.serialize_cdr(msg, POINTCLOUD2), POINTCLOUD2)
+    want = np.stack([rows[n] for n in ("x", "y", "z", "intensity")], 1)
+    np.testing.assert_array_equal(pointcloud2_to_points(msg), want)
+
+
+def test_livox_cdr_decoder_equals_rosbags_for_every_frame_id_length():
+    """``livox_custom_from_cdr`` must decode what rosbags' deserializer does whatever the
+    frame id: the CDR alignment of ``timebase`` (uint64, 8 bytes) after the frame id string
+    depends on its length, and ``livox_frame`` (12 bytes with its NUL) aligns alike to 4
+    and 8. A mutation audit: aligning ``timebase`` to 4 passed with only ``livox_frame``."""
+    from indoorbev_jax.rosbag import header, livox_custom_from_cdr, livox_custom_to_points
+
+    ts = typestore()
+    t = ts.types
+    cloud = np.array([[1.5, -2.0, 0.25, 100], [3.0, 1.0, -0.5, 7]], np.float32)
+    points = [
+        t["livox_ros_driver2/msg/CustomPoint"](
+            offset_time=i, x=x, y=y, z=z, reflectivity=int(r), tag=0, line=i
+        )
+        for i, (x, y, z, r) in enumerate(cloud)
+    ]
+    stamp = 1_700_000_000_123_456_789
+    for n in range(1, 13):
+        frame = "livox_frame1"[:n]
+        msg = t[LIVOX_CUSTOM](
+            header=header(ts, stamp, frame), timebase=5, point_num=2, lidar_id=0,
+            rsvd=np.zeros(3, np.uint8), points=points,
+        )  # fmt: skip
+        for little in (True, False):
+            raw = ts.serialize_cdr(msg, LIVOX_CUSTOM, little_endian=little)
+            ref = livox_custom_to_points(ts.deserialize_cdr(raw, LIVOX_CUSTOM))
+            got_stamp, got_frame, got = livox_custom_from_cdr(raw)
+            assert (got_stamp, got_frame) == (stamp, frame)
+            np.testing.assert_array_equal(got, ref)
+            np.testing.assert_array_equal(got, cloud)
+
+
+def test_read_clouds_yields_the_record_time(tmp_path):
+    """``read_clouds`` yields each cloud's record time, the bag's log time (``Cloud.log_ns``,
+    the first item of a ``write_bag`` frame), not its header stamp: a bag written with record
+    time 1 s and stamp 5 ns reads back 1 s, as ``iter_clouds`` says. A mutation audit:
+    yielding the header stamp passed."""
+    from indoorbev_jax.rosbag import iter_clouds, read_clouds, write_bag
+
+    points = np.array([[1, 0, 0, 0.5]], np.float32)
+    empty = kitti.ObjectLabels.empty(with_scores=True)
+    frames = [(10**9, "lidar", points, empty, 5), (2 * 10**9, "lidar", points, empty, 9)]
+    write_bag(tmp_path / "b", frames, CFG.data.class_names, "/points", "/objects")
+    assert [(c.log_ns, c.stamp_ns) for c in iter_clouds(tmp_path / "b")] == [
+        (10**9, 5), (2 * 10**9, 9)
+    ]  # fmt: skip
+    got = list(read_clouds(tmp_path / "b"))
+    assert [(log_ns, frame) for log_ns, frame, _ in got] == [(10**9, "lidar"), (2 * 10**9, "lidar")]
+    np.testing.assert_array_equal(got[0][2], points)

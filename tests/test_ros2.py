@@ -8,10 +8,12 @@ import os
 import queue
 import shutil
 import signal
+import struct
 import subprocess
 import sys
 import threading
 import time
+import types
 
 import jax
 import numpy as np
@@ -935,3 +937,193 @@ def test_sim_publish_goes_on_and_reports_when_its_recording_fails(tmp_path, monk
     assert "recording failed" in str(failed.value) and "No space left" in str(failed.value)
     assert "'frames': 4" in capsys.readouterr().out  # every frame went out, then the summary
     assert (tmp_path / "bag.partial").is_dir() and not (tmp_path / "bag").exists()
+
+
+def test_header_nanosec_of_a_second_or_more_is_refused():
+    """builtin_interfaces/Time keeps ``nanosec < 10**9``: ``header_from_cdr`` reads a broken
+    cloud's header only when it is a valid one, else None (its docstring), so a header of
+    nanosec 10**9 gives no outputs rather than a stamp one second off. A mutation audit:
+    accepting nanosec == 10**9 passed."""
+    frame = b"lidar\0"
+    for nanosec, want in ((10**9 - 1, (5 * 10**9 + 10**9 - 1, "lidar")), (10**9, None)):
+        raw = b"\x00\x01\x00\x00" + struct.pack("<iII", 5, nanosec, len(frame)) + frame
+        assert M.header_from_cdr(raw + b"\x00\x00") == want
+
+
+def test_occupancy_map_load_time_is_the_cloud_stamp():
+    """Every output carries the input cloud's stamp (docs/ROBOT.md, Topics); the grid's
+    ``info.map_load_time`` is that stamp too, not 0 (a map loaded in 1970). A mutation
+    audit: a zero map_load_time passed."""
+    stamp = 1_700_000_000_500_000_000
+    msg = M.occupancy_msg(TS, None, CFG.grid, stamp, "lidar")
+    msg = TS.deserialize_cdr(TS.serialize_cdr(msg, M.OCCUPANCY_GRID), M.OCCUPANCY_GRID)
+    assert M.stamp_ns(msg) == stamp
+    load = msg.info.map_load_time
+    assert load.sec * 10**9 + load.nanosec == stamp
+
+
+def test_node_qos_reliability_follows_the_flag():
+    """Input subscribed best effort unless --reliable; outputs published reliable
+    (docs/ROBOT.md, Topics): ``runtime.qos(reliable, depth)`` must map True to RELIABLE and
+    False to BEST_EFFORT. The live loop test uses ``runtime.qos`` on both ends, so it cannot
+    see an inversion. A mutation audit: inverted reliability passed."""
+    pytest.importorskip("rclpy", reason="the ros extra is not installed (pip install -e .[ros])")
+    from rclpy.qos import ReliabilityPolicy
+
+    from indoorbev_jax.ros2 import runtime
+
+    assert runtime.qos(True, 5).reliability == ReliabilityPolicy.RELIABLE
+    assert runtime.qos(True, 5).depth == 5
+    assert runtime.qos(False, 1).reliability == ReliabilityPolicy.BEST_EFFORT
+    assert runtime.qos(False, 1).depth == 1
+
+
+def test_node_drops_stale_clouds_and_times_only_stamped_ones(monkeypatch):
+    """run_detect_node's own callback and worker under a fake rclpy node (no DDS), with a
+    fake detector whose first cloud blocks while more arrive (docs/ROBOT.md, Behaviour):
+
+    - the subscription keeps one message (keep last 1, best effort by default) and the
+      outputs are reliable, keep last 5;
+    - the callback parks only the newest cloud: a burst of 19 while the worker is busy
+      gives one processed (the newest) and 18 dropped as stale, and a later cloud that
+      finds the mailbox empty is not counted as dropped (a mailbox that kept the stale
+      ones would count it, and grow without bound);
+    - ``latency_ms`` runs from the stamp until the detections are published, so it holds
+      a detections publish that takes 0.1 s (markers and grid follow);
+    - unstamped clouds (stamp 0) stay out of every latency (else ~1.8e12 ms).
+
+    A mutation audit: keeping stale clouds in the mailbox, a subscription depth of 10,
+    latency ending before the detections are published, and unstamped clouds in the
+    latency statistics all passed."""
+    from indoorbev_jax.ros2 import detect, runtime
+
+    entered, gate, processed, published = threading.Event(), threading.Event(), [], []
+    last = list(OUTPUTS)[-1].encode()
+    slow_ms = 100
+
+    class FakeDetector:
+        def __init__(self, *a, **k):
+            self.ts = TS
+
+        def warmup(self):
+            return 0.0
+
+        def inference_ms(self):
+            return 1.0
+
+        def process(self, raw):
+            stamp, frame = M.header_from_cdr(raw)
+            processed.append(frame)
+            entered.set()
+            assert gate.wait(10)
+            outputs = {k: k.encode() for k in OUTPUTS}
+            empty = kitti.ObjectLabels.empty(with_scores=True)
+            return detect.Result(stamp, frame, outputs, empty, None, 5.0)
+
+    class Pub:
+        def __init__(self, topic):
+            self.topic_name = topic
+
+        def publish(self, message):
+            if message == b"detections":
+                time.sleep(slow_ms / 1000)
+            published.append(message)
+
+    qos_of = {}
+
+    class Node:
+        def get_logger(self):
+            return type("Log", (), {"__getattr__": lambda s, n: lambda *a, **k: None})()
+
+        def create_publisher(self, cls, topic, qos):
+            qos_of[topic] = qos
+            return Pub(topic)
+
+        def create_subscription(self, cls, topic, cb, qos, raw):
+            qos_of["input"], self.cb = qos, cb
+            return Pub(topic)
+
+    def wait_for(n):  # the n-th cloud's outputs all published
+        deadline = time.monotonic() + 10
+        while published.count(last) < n:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+
+    def spin(node, context, stop):
+        node.cb(_raw_cloud(_scan(5), stamp=0, frame="c0"))  # unstamped
+        assert entered.wait(10)
+        for k in range(1, 20):  # a burst while c0 is in the model
+            node.cb(_raw_cloud(_scan(5), stamp=time.time_ns(), frame=f"c{k}"))
+        gate.set()
+        wait_for(2)  # c19 done: the mailbox is empty, nothing in the model
+        node.cb(_raw_cloud(_scan(5), stamp=time.time_ns(), frame="c20"))
+        wait_for(3)
+        stop.set()
+
+    node = Node()
+    monkeypatch.setattr(detect, "load_model", lambda checkpoint: (CFG, None))
+    monkeypatch.setattr(detect, "with_thresholds", lambda config, views=None: config)
+    monkeypatch.setattr(detect, "Detector", FakeDetector)
+    monkeypatch.setattr(runtime, "require_rclpy", lambda: None)
+    monkeypatch.setattr(runtime, "start_node", lambda name, args: (None, node))
+    monkeypatch.setattr(runtime, "stop_node", lambda node, context: None)
+    monkeypatch.setattr(runtime, "msg_class", lambda msgtype: None)
+    monkeypatch.setattr(runtime, "qos", lambda reliable, depth: (reliable, depth))
+    monkeypatch.setattr(runtime, "spin", spin)
+    summary = detect.run_detect_node("no-model", log_every=1e9)
+    assert qos_of.pop("input") == (False, 1)
+    assert set(qos_of.values()) == {(True, 5)}
+    assert processed == ["c0", "c19", "c20"]
+    assert (summary["received"], summary["processed"], summary["dropped_stale"]) == (21, 3, 18)
+    # Two stamped clouds timed: c19 waits out c0's detections publish and its own (at
+    # least 0.2 s), c20 its own (at least 0.1 s); the callback took each at once.
+    assert summary["transport_ms"]["max"] < 5_000  # unstamped c0 left out (it read 1.8e12)
+    assert summary["latency_ms"]["mean"] >= 1.5 * slow_ms
+    assert summary["latency_ms"]["max"] < 10_000
+
+
+def test_sim_publish_markers_live_two_frame_periods(monkeypatch):
+    """The simulator's ground-truth markers live two frame periods (docs/ROBOT.md, Topics):
+    at 20 Hz every marker of every published MarkerArray has lifetime 0.1 s, so a box
+    stays until the next frame replaces it and vanishes if the stream stops. Driven under a
+    fake rclpy node with fixed frames (no DDS, no scene generation). A mutation audit: a
+    lifetime 1000 times too short passed."""
+    import indoorbev_sim.ros2 as sim_ros2
+
+    from indoorbev_jax.ros2 import runtime
+
+    labels, _ = _two_detections()
+    sent = []
+
+    class Pub:
+        def __init__(self, topic):
+            self.topic_name = topic
+
+        def publish(self, message):
+            sent.append((self.topic_name, message))
+
+    class Node:
+        def create_publisher(self, cls, topic, qos):
+            return Pub(topic)
+
+        def get_clock(self):
+            return type("Clock", (), {"now": lambda s: types.SimpleNamespace(nanoseconds=7)})()
+
+    context = types.SimpleNamespace(ok=lambda: True)
+
+    def frames(config, seed, split):
+        while True:
+            yield _scan(5), labels
+
+    monkeypatch.setattr(sim_ros2, "scene_frames", frames)
+    monkeypatch.setattr(runtime, "require_rclpy", lambda: None)
+    monkeypatch.setattr(runtime, "start_node", lambda name, args: (context, Node()))
+    monkeypatch.setattr(runtime, "stop_node", lambda node, context: None)
+    monkeypatch.setattr(runtime, "msg_class", lambda msgtype: None)
+    monkeypatch.setattr(runtime, "qos", lambda reliable, depth: None)
+    rate = 20.0
+    assert sim_ros2.publish(CFG, rate=rate, frames=2)["frames"] == 2
+    arrays = [TS.deserialize_cdr(m, MARKER_ARRAY) for t, m in sent if t.endswith("objects")]
+    assert len(arrays) == 2 and all(len(a.markers) == 1 + len(labels) for a in arrays)
+    lifetime = divmod(round(2 / rate * 1e9), 10**9)
+    assert {(m.lifetime.sec, m.lifetime.nanosec) for a in arrays for m in a.markers} == {lifetime}

@@ -90,7 +90,20 @@ def test_test_split_comes_from_held_out_plans(exported):
 
 
 def test_rosbag_round_trip(exported):
+    """The bag gives back the KITTI frames, clouds and markers all in frame "lidar" (the
+    module docstring, docs/SIMULATOR.md). A mutation audit: another frame id passed."""
+    from rosbags.rosbag2 import Reader
+
+    from indoorbev_jax.rosbag import typestore
+
     root, bag, _ = exported
+    ts = typestore()
+    with Reader(bag) as reader:
+        msgs = [(c.topic, ts.deserialize_cdr(raw, c.msgtype)) for c, _, raw in reader.messages()]
+    clouds = [m for t, m in msgs if t == export_mod.POINTS_TOPIC]
+    arrays = [m for t, m in msgs if t == export_mod.OBJECTS_TOPIC]
+    assert clouds and {m.header.frame_id for m in clouds} == {"lidar"}
+    assert {m.header.frame_id for a in arrays for m in a.markers} == {"lidar"}
     frames = export_mod.read_rosbag(bag, CFG)
     ids = kitti.list_frames(root)
     assert len(frames) == len(ids)
