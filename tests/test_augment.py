@@ -13,6 +13,7 @@ from indoorbev_jax.config import AugmentConfig, Config
 from indoorbev_jax.data.dataset import make_targets
 from indoorbev_jax.data.kitti import ObjectLabels
 from indoorbev_jax.data.rasterize import instance_ids_from_masks
+from indoorbev_jax.geometry import cell_index
 from indoorbev_jax.types import Batch
 
 CFG = Config.tiny()
@@ -628,3 +629,157 @@ def test_gt_sampling_ignores_floor_points_under_a_pose():
     np.testing.assert_array_equal(np.asarray(a.points)[:, first : first + n],
                                   np.broadcast_to(np.asarray(floor.points)[first : first + n],
                                                   (16, n, 4)))  # fmt: skip
+
+
+def test_box_noise_scales_points_with_the_box_and_floor_returns_block_nothing():
+    """box_noise moves, turns and rescales an object "together with its points" (its
+    docstring): in the moved box's frame each point of the object sits at ``scale`` times its
+    place in the old box's frame, z included (the box height scales). And only scene points
+    *above its floor* can undo a move, so a dense floor at z = 0 (the objects stand on it)
+    gives the same targets as no floor. A mutation audit passed all tests with point z left
+    unscaled, and with the floor test dropped (floor returns undid moves)."""
+    rng = np.random.default_rng(0)
+    frame = make_frame()
+    n, first = 1200, int(frame.point_valid.sum())
+    with_floor = _with_points(frame, np.c_[rng.uniform(-4.5, 4.5, (n, 2)), np.zeros(n),
+                                           rng.random(n)])  # fmt: skip
+    cfg = dataclasses.replace(OFF, box_noise_prob=1.0, box_translation_std=0.1,
+                              box_yaw_std=0.1, box_scale_std=0.2)  # fmt: skip
+    run = jax.jit(jax.vmap(lambda k, f: aug.box_noise(k, f, GRID, cfg), (0, None)))
+    keys = jax.random.split(jax.random.key(0), 6)
+    a, b = run(keys, frame), run(keys, with_floor)
+    jax.tree.map(np.testing.assert_array_equal, b.targets, a.targets)
+    t0 = frame.targets
+    pos0, dims0, yaw0 = (np.asarray(x)[:3] for x in (t0.pos, t0.dims, t0.yaw))
+    pos, dims, yaw = (np.asarray(x)[:, :3] for x in (a.targets.pos, a.targets.dims,
+                                                     a.targets.yaw))  # fmt: skip
+
+    def local(p, centre, heading):  # [P, 3] in the box frame (heading along +x)
+        d = p[:, :3] - centre
+        c, s = np.cos(heading), np.sin(heading)
+        return np.c_[c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]]
+
+    p0, p1 = np.asarray(frame.points), np.asarray(a.points)
+    rescaled = floor_under = 0
+    for j in range(len(keys)):
+        for k in range(3):
+            rows = slice(150 * k, 150 * (k + 1))  # object k's points in make_frame
+            scale = dims[j, k] / dims0[k]
+            np.testing.assert_allclose(scale, scale[0], rtol=1e-5)  # one scale per object
+            np.testing.assert_allclose(local(p1[j, rows], pos[j, k], yaw[j, k]),
+                                       scale[0] * local(p0[rows], pos0[k], yaw0[k]),
+                                       atol=2e-5)  # fmt: skip
+            rescaled += abs(scale[0] - 1) > 0.05
+            # Floor points under the moved box: enough to undo the move if they counted.
+            fl = local(np.asarray(with_floor.points)[first : first + n], pos[j, k], yaw[j, k])
+            moved = not np.allclose(pos[j, k], pos0[k])
+            under = (np.abs(fl[:, :2]) <= dims[j, k, :2] / 2).all(-1).sum()
+            floor_under += moved and under > aug.SCENE_POINTS_LIMIT
+    assert rescaled >= 6 and floor_under >= 6, (rescaled, floor_under)
+
+
+def test_range_band_dropout_drops_one_band_of_its_width():
+    """point_noise's range-band dropout (AugmentConfig.range_dropout_prob: "drop one random
+    range band of the frame", range_dropout_width metres wide): at probability 1 the points
+    dropped are exactly the valid points with r0 <= r < r0 + width for one r0, i.e. all
+    within one band of that width, every point between the nearest and farthest dropped one
+    dropped, nothing else touched. A mutation audit (the band never drops a point) passed
+    all tests."""
+    frame = make_frame()
+    width = 2.0
+    cfg = dataclasses.replace(OFF, range_dropout_prob=1.0, range_dropout_width=width)
+    keys = jax.random.split(jax.random.key(0), 4)
+    out = jax.jit(jax.vmap(lambda k: aug.point_noise(k, frame, GRID, cfg)))(keys)
+    valid0, pts0 = np.asarray(frame.point_valid), np.asarray(frame.points)
+    r = np.hypot(pts0[:, 0], pts0[:, 1])
+    banded = 0
+    for j in range(len(keys)):
+        kept = np.asarray(out.point_valid[j])
+        assert not (kept & ~valid0).any()
+        np.testing.assert_array_equal(np.asarray(out.points[j])[kept], pts0[kept])
+        dropped = valid0 & ~kept
+        if not dropped.any():
+            continue  # r0 drawn beyond the farthest point
+        banded += 1
+        lo, hi = r[dropped].min(), r[dropped].max()
+        assert hi - lo < width
+        between = valid0 & (r >= lo) & (r <= hi)
+        np.testing.assert_array_equal(dropped, between)
+    assert banded >= 3, banded
+
+
+def test_gt_sampling_respects_unseen_objects_five_point_clutter_and_pastes_whole_objects():
+    """gt_sampling's docstring on one generated batch of 12 frames:
+    - the database holds each object's points object-local (ObjectDatabase: centre at 0,
+      heading along +x), the frame's rows turned by -yaw, re-derived in numpy;
+    - a candidate is rejected when its footprint touches an existing footprint, even of
+      labelled objects with no points (occluded: the scene-point test cannot catch them);
+    - it is rejected only with *more than* 5 scene points above floor level under it: a pose
+      over a 5-point clutter cluster is accepted (and those points removed);
+    - a pasted object's points lie inside its pasted box (its yaw is the one its points
+      were turned by), each of the database object's points once.
+    A mutation audit passed all tests with the footprint test off, with ">= 5" points
+    rejecting, with the pasted box turned 90 degrees, and with the database turned by +yaw."""
+    base = make_frame()
+    t0 = base.targets
+    owned = np.asarray(aug.points_in_boxes(base.points, t0.pos, t0.dims, t0.yaw, t0.valid))
+    db = aug.build_object_database(jax.tree.map(lambda a: a[None], base), GRID, max_points=64)
+    pts0 = np.asarray(base.points)
+    for d in range(3):  # the rows kept are known by their intensity, copied unchanged
+        keep = np.asarray(db.point_valid[d])
+        rows = [int(np.flatnonzero(pts0[:, 3] == v)[0]) for v in np.asarray(db.points[d, keep, 3])]
+        assert owned[d, rows].all()
+        rel = pts0[rows, :3] - np.asarray(t0.pos[d])
+        c, s = np.cos(float(t0.yaw[d])), np.sin(float(t0.yaw[d]))
+        want = np.c_[c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]]
+        np.testing.assert_allclose(np.asarray(db.points[d, keep, :3]), want, atol=1e-5)
+    # The frame: the same floor, 4 labelled objects without points, 5-point clusters 0.3 m up.
+    labels = ObjectLabels(classes=[0] * 4, dims=[[2.0, 1.2, 0.75]] * 4,
+                          pos=[[-2.0, -2.0, 0.375], [2.0, -2.0, 0.375], [2.0, 2.0, 0.375],
+                               [-2.0, 2.0, 0.375]], yaw=[0.3, -0.5, 1.0, 0.0],
+                          occlusion=[2] * 4)  # fmt: skip
+    targets = jax.tree.map(jnp.asarray, make_targets(labels, GRID, CFG.data.max_objects))
+    floor = pts0[~owned.any(0) & np.asarray(base.point_valid)]
+    grid_1m = np.arange(-4.0, 4.5, 1.0)  # 81 clusters of 5 coincident points, 1 m apart
+    cluster = np.array([(x, y, 0.3, 0.5) for x in grid_1m for y in grid_1m for _ in range(5)])
+    n_floor = len(floor)
+    points = np.zeros((CFG.data.max_points, 4), np.float32)
+    points[: n_floor + len(cluster)] = np.concatenate([floor, cluster])
+    frame = Batch(points=jnp.asarray(points), targets=targets,
+                  point_valid=jnp.arange(CFG.data.max_points) < n_floor + len(cluster))  # fmt: skip
+    cfg = dataclasses.replace(OFF, gt_sampling=3, gt_sampling_attempts=8)
+    n_keys = 12
+    out = jax.jit(jax.vmap(lambda k: aug.gt_sampling(k, frame, db, GRID, cfg)))(
+        jax.random.split(jax.random.key(0), n_keys)
+    )
+    t = out.targets
+    valid = np.asarray(t.valid)
+    masks = np.asarray(t.masks) & valid[..., None, None]
+    pasted = valid[:, 4:]
+    assert pasted.sum() >= n_keys, pasted.sum()
+    assert (masks.sum(1) <= 1).all()  # never over an existing (pointless) footprint
+    # Scene points per pasted footprint: cluster points under it, at 0.3 m (in every height).
+    row, col, _ = (np.asarray(a) for a in cell_index(jnp.asarray(cluster[:, 0]),
+                                                     jnp.asarray(cluster[:, 1]), GRID))  # fmt: skip
+    under = masks[:, 4:, row, col]  # [K, 4, 405]
+    assert under.sum(-1).max() <= aug.SCENE_POINTS_LIMIT
+    over_five = under.sum(-1) == aug.SCENE_POINTS_LIMIT
+    assert over_five.sum() >= 2, over_five.sum()  # the boundary case is exercised
+    # Scene points under a paste are removed (their slots may take pasted points).
+    slots = slice(n_floor, n_floor + len(cluster))
+    same = (np.asarray(out.points)[:, slots] == cluster).all(-1)
+    assert not (np.asarray(out.point_valid)[:, slots] & same & under.any(1)).any()
+    # Pasted points: each inside its own pasted box.
+    inside = np.asarray(
+        jax.vmap(
+            lambda f: aug.points_in_boxes(
+                f.points, f.targets.pos, f.targets.dims, f.targets.yaw, f.targets.valid, 1e-3
+            )
+        )(out)
+    )
+    unchanged = (np.asarray(out.points) == points).all(-1) & np.asarray(frame.point_valid)
+    new = np.asarray(out.point_valid) & ~unchanged  # pasted points, in freed slots too
+    n_db = {int(c): int(np.asarray(db.point_valid[d]).sum()) for d, c in enumerate(db.classes)}
+    for j, k in np.argwhere(pasted):
+        assert (inside[j, 4 + k] & new[j]).sum() == n_db[int(t.classes[j, 4 + k])], (j, k)
+    assert new.sum() == sum(n_db[int(c)] for c in np.asarray(t.classes)[:, 4:][pasted])

@@ -254,3 +254,31 @@ def test_python_built_sections_check_each_fields_type():
         x_range=list(np.float32([-4.2, 4.2])), y_range=(-3, 3), cell_size=np.float32(0.3)
     )
     assert grid.x_range == (-4.2, 4.2) and grid.cell_size == 0.3
+
+
+def test_refuses_zero_gt_sampling_attempts_and_a_grid_a_fraction_of_a_cell_off():
+    """``augment.gt_sampling`` needs at least one candidate pose per pasted object (zero
+    attempts crashed inside the jitted paste, an argmax over nothing), and a grid extent must
+    hold a whole number of cells (DESIGN section 2: W = (x_max - x_min) / v): 10 m / 0.099 m
+    is 101.0101 cells, whose centres drift off the documented formula. A mutation audit
+    (gt_sampling_attempts < 0 checked; divisibility tolerance 0.1 cell) passed all tests."""
+    with pytest.raises(ConfigError, match=r"config field 'augment\.gt_sampling'.*attempts"):
+        AugmentConfig(gt_sampling=2, gt_sampling_attempts=0)
+    assert AugmentConfig(gt_sampling=2, gt_sampling_attempts=1).gt_sampling_attempts == 1
+    extent = GridConfig().x_range[1] - GridConfig().x_range[0]
+    cells = extent / 0.099
+    assert 1e-3 < abs(cells - round(cells)) < 0.1  # a near miss, not a gross one
+    with pytest.raises(ConfigError, match=r"config field 'grid\.x_range'.*not divisible"):
+        GridConfig(cell_size=0.099)
+
+
+def test_with_overrides_refuses_a_path_deeper_than_section_field():
+    """``with_overrides`` takes SECTION.FIELD=VALUE items only; ``head.remat.x=true`` is a
+    malformed item and must be a ConfigError naming the expected form (the CLI turns it into a
+    one-line exit 2), not a bare ValueError traceback from unpacking three parts. A mutation
+    audit (a.b.c accepted past the form check) passed all tests."""
+    from indoorbev_jax.config import with_overrides
+
+    for item in ("head.remat.x=true", "grid.x_range.0=1.0"):
+        with pytest.raises(ConfigError, match="expected SECTION.FIELD=VALUE"):
+            with_overrides(Config.tiny(), [item])

@@ -341,3 +341,21 @@ def test_eval_refuses_scored_ground_truth_and_notes_extra_predictions(tmp_path, 
     (pred / "label_2" / "000009.txt").unlink()
     assert cli_main([*argv, "--gt", str(pred), "--pred", str(tmp_path / "gt")]) == 1
     assert "000000.txt: ground truth with a score column" in capsys.readouterr().err
+
+
+def test_collate_keeps_each_frames_own_point_validity(tmp_path):
+    """collate stacks the items along a new axis, every field its own frame's: a frame with
+    few valid points next to one with many keeps its own ``point_valid`` (a wrong mask would
+    feed padding as points, or drop real ones, silently). A mutation audit (every frame given
+    the first frame's ``point_valid``) passed all tests."""
+    make_dataset(tmp_path)
+    ds = KittiDataset(tmp_path, "train", CFG)
+    items = [ds.load(k)[0] for k in (2, 0, 1)]
+    counts = [int(b.point_valid.sum()) for b in items]
+    assert len(set(counts)) == 3  # three different valid counts, one of them 0
+    batch = collate(items)
+    for k, item in enumerate(items):
+        np.testing.assert_array_equal(batch.point_valid[k], item.point_valid)
+        np.testing.assert_array_equal(batch.points[k], item.points)
+        np.testing.assert_array_equal(batch.targets.masks[k], item.targets.masks)
+    np.testing.assert_array_equal(batch.point_valid.sum(1), counts)

@@ -198,3 +198,26 @@ def test_the_workspace_is_closed_in_z():
     np.testing.assert_array_equal(
         np.asarray(in_workspace(jnp.asarray(xyz), grid)), [True, True, False, False, True]
     )
+
+
+def test_the_workspace_is_closed_in_x_and_y_and_its_far_edges_fall_in_the_last_cells():
+    """DESIGN section 2 and geometry.on_grid: the workspace is closed in x and y as in z, so
+    x = x_max and y = y_max are inside (the next float beyond is outside), and ``cell_index``
+    puts them in the last column and row (floor((x_max - x_min) / v) = W clipped to W - 1).
+    A mutation audit (x <= x_max made x < x_max) passed all tests."""
+    grid = GridConfig(x_range=(0.0, 8.0), y_range=(-4.0, 4.0), z_range=(-3.0, 3.0), cell_size=0.5)
+    h, w = grid.shape
+    x_max, y_max = np.float32(8.0), np.float32(4.0)
+    x = np.array([x_max, 0.0, 4.0, 4.0, x_max, np.nextafter(x_max, np.inf), 4.0], np.float32)
+    y = np.array([0.0, 0.0, y_max, -4.0, y_max, 0.0, np.nextafter(y_max, np.inf)], np.float32)
+    expected = [True, True, True, True, True, False, False]
+    xyz = np.stack([x, y, np.zeros_like(x)], 1)
+    np.testing.assert_array_equal(in_workspace(xyz, grid), expected)
+    np.testing.assert_array_equal(np.asarray(in_workspace(jnp.asarray(xyz), grid)), expected)
+    row, col, inside = (np.asarray(a) for a in cell_index(jnp.asarray(x), jnp.asarray(y), grid))
+    np.testing.assert_array_equal(inside, expected)
+    # Expected cells from DESIGN section 2 (column j covers x_min + [j, j + 1) v), the far
+    # edge clipped into the last column / row.
+    np.testing.assert_array_equal(col[:5], np.minimum((x[:5] - 0.0) // 0.5, w - 1))
+    np.testing.assert_array_equal(row[:5], np.minimum((y[:5] + 4.0) // 0.5, h - 1))
+    assert col[0] == w - 1 and row[2] == h - 1 and (row[4], col[4]) == (h - 1, w - 1)
