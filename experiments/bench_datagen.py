@@ -104,16 +104,27 @@ def main(argv=None) -> None:
     # The variants time the same scenes: the 1-thread launches bit for bit, the pure-JAX
     # caster up to float32 grazing rays (the labels the same).
     batch0, _ = jax.tree.map(np.asarray, rows["ours"](jax.random.key(0)))
+    # Valid returns are packed to the front of each scene, so one grazing ray hit by one
+    # caster alone shifts the rest of its scene: points are compared in scenes of equal
+    # counts, and the counts may differ by a ray in 10^4.
+    count0 = batch0.point_valid.sum(-1)
     for name in rows.keys() - {"ours"}:
         other, _ = jax.tree.map(np.asarray, rows[name](jax.random.key(0)))
-        close = np.abs(other.points - batch0.points).max(-1) <= 1e-4
         if name.endswith("1 thread") and not np.array_equal(other.points, batch0.points):
             raise SystemExit(f"{name}: other points than ours on the same key: not timed")
+        count = other.point_valid.sum(-1)
+        same = count == count0
+        close = np.abs(other.points[same] - batch0.points[same]).max(-1) <= 1e-4
+        off = np.abs(count - count0).sum()
         same_labels = np.array_equal(other.targets.valid, batch0.targets.valid)
-        if close.mean() < 0.9999 or not same_labels:
+        if (
+            off > 1e-4 * count0.sum() + 1
+            or (close.size and close.mean() < 0.9999)
+            or not same_labels
+        ):
             raise SystemExit(
-                f"{name}: {int((~close).sum())} of {close.size} points, or the labelled "
-                "objects, differ from ours on the same key: not timed"
+                f"{name}: {off} returns, {int((~close).sum())} of {close.size} points or the "
+                "labelled objects differ from ours on the same key: not timed"
             )
     t0 = time.perf_counter()
     same, either = reference(rows["ours"](jax.random.key(0)))

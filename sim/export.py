@@ -156,12 +156,12 @@ def _check_bag_place(bag: Path, root: Path) -> None:
         raise ExportError(f"{bag}: cannot be created ({existing} is not writable)")
 
 
-def _remove_stale_temporaries(root: Path) -> None:
-    """Deletes what a killed ``kitti.atomic_write`` left (``.<name>.<random>.tmp``, a minute
-    old) in this export's folders (export.json checked); a user's hidden file of another
-    name, or another export's write in flight, is left alone."""
+def _remove_stale_temporaries(root: Path, min_age: float = 60.0) -> None:
+    """Deletes what a killed ``kitti.atomic_write`` left (``.<name>.<random>.tmp``,
+    ``min_age`` seconds old) in this export's folders (export.json checked); a user's hidden
+    file of another name, or another export's write in flight, is left alone."""
     for folder in (root, *(root / d for d in _DATA_DIRS)):
-        kitti.remove_stale_temporaries(folder, "*")
+        kitti.remove_stale_temporaries(folder, "*", min_age)
 
 
 def saved_preset(root: str | os.PathLike) -> str | None:
@@ -250,6 +250,7 @@ def export(
     check_settings(config.sim)  # before export.json keeps settings that cannot run
     meta = {"seed": int(seed), "frames": int(frames), "config": config.stable_dict()}
     _check_meta(root, meta)  # stable_dict: an export.json of an older version still matches
+    started = time.time()
     _remove_stale_temporaries(root)
     t_len = config.sim.frames_per_sequence
     scenes = [
@@ -277,6 +278,9 @@ def export(
             bar.update(len(scenes[j]))
     for split, ids in splits.items():
         kitti.write_split(root, split, ids)
+    # A write killed less than a minute before this resume outlived the first clean-up; one
+    # from before this run started is no write in flight now (they take milliseconds).
+    _remove_stale_temporaries(root, max(time.time() - started, 5.0))
     if rosbag is not None:
         all_ids = sorted(i for ids in splits.values() for i in ids)
         write_rosbag(root, rosbag, all_ids, config)

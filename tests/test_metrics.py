@@ -344,6 +344,13 @@ def test_iou_thresholds_above_1_are_refused():
         with pytest.raises(ValueError, match=refused):
             Evaluator(iou_thresholds=bad)
     assert Evaluator(iou_thresholds=np.array([0.25, 0.5])).iou_thresholds == (0.25, 0.5)
+    # Any 1-D iterable of numbers still serves (a jax array, a generator); a 0-d array or a
+    # bool array is named like a bare number or a bool.
+    assert Evaluator(iou_thresholds=jax.numpy.array([0.25, 0.5])).iou_thresholds == (0.25, 0.5)
+    assert Evaluator(iou_thresholds=(t for t in (0.25, 0.5))).iou_thresholds == (0.25, 0.5)
+    for bad in (np.array(0.5), np.array([True])):
+        with pytest.raises(ValueError, match=refused):
+            Evaluator(iou_thresholds=bad)
     assert mask_ap([g], [d], (0.0, 1.0))["ap"] == coco_reference([g], [d], (0.0, 1.0))[0]
 
 

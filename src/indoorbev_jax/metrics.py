@@ -255,11 +255,11 @@ def _check_iou(name: str, value, low_open: bool = False) -> float:
     """``value`` as a float in [0, 1] ((0, 1] with ``low_open``); a string, a bool or NaN is
     refused by name (``float("0.5") < 1`` would pass a string through to a TypeError)."""
     thr = math.nan
-    if not isinstance(value, str | bytes | bool | np.bool_):
-        try:
+    try:
+        if np.asarray(value).dtype.kind not in "bUS":  # bools and text are no IoU
             thr = float(value)
-        except (TypeError, ValueError):
-            pass
+    except (TypeError, ValueError):
+        pass
     if not (0.0 < thr <= 1.0 if low_open else 0.0 <= thr <= 1.0):
         bounds = "(0, 1]" if low_open else "[0, 1]"
         raise ValueError(f"{name}: expected a number in {bounds}, got {value!r}")
@@ -267,14 +267,18 @@ def _check_iou(name: str, value, low_open: bool = False) -> float:
 
 
 def _check_thresholds(iou_thresholds: Sequence[float]) -> tuple[float, ...]:
-    if isinstance(iou_thresholds, str) or not isinstance(iou_thresholds, Sequence | np.ndarray):
+    try:  # any 1-D iterable: a tuple, a numpy or jax array, a generator
+        if isinstance(iou_thresholds, str | bytes):
+            raise TypeError
+        values = list(iou_thresholds)
+    except TypeError:  # a bare number, a 0-d array, text
         raise ValueError(
             f"iou_thresholds: expected a sequence of numbers in [0, 1] (e.g. (0.25, 0.5)), "
             f"got {iou_thresholds!r}"
-        )
-    if len(iou_thresholds) == 0:
+        ) from None
+    if not values:
         raise ValueError("iou_thresholds: expected at least one threshold, got none")
-    return tuple(_check_iou("iou_thresholds", t) for t in iou_thresholds)
+    return tuple(_check_iou("iou_thresholds", t) for t in values)
 
 
 def _ap_from_frames(

@@ -89,7 +89,7 @@ def cloud_msg(ts, points: np.ndarray, stamp_ns: int, frame: str = "lidar"):
         point_step=16,
         row_step=16 * len(data),
         data=data.view(np.uint8).reshape(-1),
-        is_dense=bool(np.isfinite(data[:, :3]).all()),
+        is_dense=bool(np.isfinite(data[..., :3]).all()),
     )
 
 

@@ -229,8 +229,9 @@ def test_resume_after_kill_equals_uninterrupted_export(exported, cache, tmp_path
     torn = kitti.frame_paths(out, done[-1])
     torn["points"].write_bytes(torn["points"].read_bytes()[:37])
     torn["labels"].unlink()
-    # What a kill inside kitti.atomic_write leaves, once a minute old: the resume deletes
-    # it (and any the SIGKILL itself left); a user's hidden file of another name is kept.
+    # What a kill inside kitti.atomic_write leaves: the resume deletes it, a minute old at
+    # its start, or just made (a kill right before the resume) once the run is done, older
+    # than the run; a user's hidden file of another name is kept.
     (out / "mask_2" / f".{done[0]}.png.k1ll3d_a.tmp").write_bytes(b"")
     for tmp in out.rglob(".*.tmp"):
         os.utime(tmp, (time.time() - 120,) * 2)
@@ -241,8 +242,7 @@ def test_resume_after_kill_equals_uninterrupted_export(exported, cache, tmp_path
     os.utime(keep, (time.time() - 120,) * 2)
     rerun = subprocess.run(_cli(out, cache), env=env, capture_output=True, text=True)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
-    assert fresh.exists() and keep.exists()  # a write in flight; not atomic_write's name
-    fresh.unlink()
+    assert not fresh.exists() and keep.exists()  # keep: not atomic_write's name
     keep.unlink()
     for sub in ("velodyne", "label_2", "mask_2"):
         a, b = (
