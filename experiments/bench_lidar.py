@@ -170,8 +170,8 @@ def thread_sweep(mx, dx, origin, sizes, args):
     for n in sizes:
         dirs = jnp.asarray(rays[:n])
         times = {t: [] for t in fns}
-        one, two = (jax.block_until_ready(fn(geo, dirs)) for fn in fns.values())
-        if not all(np.array_equal(a, b) for a, b in zip(one, two, strict=True)):
+        cast1, cast2 = (jax.block_until_ready(fn(geo, dirs)) for fn in fns.values())
+        if not all(np.array_equal(a, b) for a, b in zip(cast1, cast2, strict=True)):
             raise SystemExit(f"{n} rays: 2 threads cast other rays than 1 thread: not timed")
         for _ in range(args.repeats):
             for t, fn in fns.items():
