@@ -166,6 +166,9 @@ def test_cloud_is_dense_only_without_invalid_points():
                              POINTCLOUD2)  # fmt: skip
     assert msg.is_dense is False
     np.testing.assert_array_equal(pointcloud2_to_points(msg), holes)
+    for empty in (np.zeros((0, 4), np.float32), np.zeros(0, np.float32)):  # no point invalid
+        msg = cloud_msg(TS, empty, 1)
+        assert msg.is_dense is True and msg.width == 0
 
 
 def test_occupancy_grid_layout():
