@@ -221,6 +221,14 @@ def test_empty_and_odd_pcd_headers(tmp_path):
     good.write_bytes(content.replace(b"POINTS 50", b"POINTS -1"))
     with pytest.raises(kitti.DatasetError, match=r"g\.pcd: WIDTH 50, HEIGHT 1, POINTS -1"):
         clouds.read_pcd(good)
+    # WIDTH x HEIGHT and POINTS disagreeing was read as POINTS, silently; PCL refuses it.
+    for old, new, counts in [
+        (b"POINTS 50", b"POINTS 49", "50 x HEIGHT 1 = 50 points, but POINTS says 49"),
+        (b"WIDTH 50", b"WIDTH 25", "25 x HEIGHT 1 = 25 points, but POINTS says 50"),
+    ]:
+        good.write_bytes(content.replace(old, new))
+        with pytest.raises(kitti.DatasetError, match=rf"g\.pcd: WIDTH {counts}"):
+            clouds.read_pcd(good)
 
 
 def test_channels_first_npy_is_named(tmp_path):

@@ -158,6 +158,12 @@ def read_pcd(path: str | os.PathLike) -> np.ndarray:
         raise DatasetError(
             f"{path}: WIDTH {width}, HEIGHT {height}, POINTS {n} and COUNT must be >= 0"
         )
+    if "POINTS" in header and "WIDTH" in header and width * height != n:
+        # PCL refuses this too: one of the three is wrong, and which one decides the cloud.
+        raise DatasetError(
+            f"{path}: WIDTH {width} x HEIGHT {height} = {width * height} points, but POINTS "
+            f"says {n}; they must agree"
+        )
     dtype = []
     for k, (name, size, kind, count) in enumerate(zip(fields, sizes, types, counts, strict=True)):
         letter = _PCD_KINDS.get(kind.upper())
