@@ -250,42 +250,46 @@ def export(
     check_settings(config.sim)  # before export.json keeps settings that cannot run
     meta = {"seed": int(seed), "frames": int(frames), "config": config.stable_dict()}
     _check_meta(root, meta)  # stable_dict: an export.json of an older version still matches
-    started = time.time()
-    _remove_stale_temporaries(root)
-    t_len = config.sim.frames_per_sequence
-    scenes = [
-        [frame_id(i) for i in range(j * t_len, min((j + 1) * t_len, frames))]
-        for j in range(math.ceil(frames / t_len))
-    ]
-    todo = [j for j, ids in enumerate(scenes) if not all(_complete(root, fid) for fid in ids)]
-    done = frames - sum(len(scenes[j]) for j in todo)
-    if done:
-        print(f"resuming: {done} of {frames} frames already written", file=sys.stderr)
-    if note := held_out_note(config.sim):
-        print(note, file=sys.stderr)
-    key = jax.random.key(seed)
-    splits: dict[str, list[str]] = {s: [] for s in SPLITS}
-    for j, ids in enumerate(scenes):
-        splits[scene_split(j)] += ids
-    fn = scene_fn(config)
-    # initial=done: frames kept from an earlier run do not count toward the rate and ETA.
-    with tqdm(total=frames, initial=done, desc="export", unit="frame", disable=not progress) as bar:
-        for j in todo:
-            check_interrupted()
-            batch, info = fn(jax.random.fold_in(key, j), scene_split(j) == "test")
-            write_scene(root, config, batch, info, scenes[j])
-            time.sleep(throttle)
-            bar.update(len(scenes[j]))
-    for split, ids in splits.items():
-        kitti.write_split(root, split, ids)
-    # A write killed less than a minute before this resume outlived the first clean-up; one
-    # from before this run started is no write in flight now (they take milliseconds; the
-    # 1 s floor only guards a run that was itself that short).
-    _remove_stale_temporaries(root, max(time.time() - started, 1.0))
-    if rosbag is not None:
-        all_ids = sorted(i for ids in splits.values() for i in ids)
-        write_rosbag(root, rosbag, all_ids, config)
-    return splits
+    # A second export into this folder is refused while one runs: both wrote every frame.
+    # Taken after the check, so that a refused export leaves the folder as it was.
+    with kitti.hold_folder(root, "export", "--out"):
+        started = time.time()
+        _remove_stale_temporaries(root)
+        t_len = config.sim.frames_per_sequence
+        scenes = [
+            [frame_id(i) for i in range(j * t_len, min((j + 1) * t_len, frames))]
+            for j in range(math.ceil(frames / t_len))
+        ]
+        todo = [j for j, ids in enumerate(scenes) if not all(_complete(root, fid) for fid in ids)]
+        done = frames - sum(len(scenes[j]) for j in todo)
+        if done:
+            print(f"resuming: {done} of {frames} frames already written", file=sys.stderr)
+        if note := held_out_note(config.sim):
+            print(note, file=sys.stderr)
+        key = jax.random.key(seed)
+        splits: dict[str, list[str]] = {s: [] for s in SPLITS}
+        for j, ids in enumerate(scenes):
+            splits[scene_split(j)] += ids
+        fn = scene_fn(config)
+        # initial=done: frames kept from an earlier run do not count toward the rate and ETA.
+        bar = tqdm(total=frames, initial=done, desc="export", unit="frame", disable=not progress)
+        with bar:
+            for j in todo:
+                check_interrupted()
+                batch, info = fn(jax.random.fold_in(key, j), scene_split(j) == "test")
+                write_scene(root, config, batch, info, scenes[j])
+                time.sleep(throttle)
+                bar.update(len(scenes[j]))
+        for split, ids in splits.items():
+            kitti.write_split(root, split, ids)
+        # A write killed less than a minute before this resume outlived the first clean-up; one
+        # from before this run started is no write in flight now (they take milliseconds; the
+        # 1 s floor only guards a run that was itself that short).
+        _remove_stale_temporaries(root, max(time.time() - started, 1.0))
+        if rosbag is not None:
+            all_ids = sorted(i for ids in splits.values() for i in ids)
+            write_rosbag(root, rosbag, all_ids, config)
+        return splits
 
 
 # ------------------------------------------------------------------------- ROS2 bags

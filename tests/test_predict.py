@@ -1,6 +1,7 @@
 """Predict path: model files, PointCloud2 of any layout, KITTI and bag inputs agree."""
 
 import dataclasses
+import fcntl
 import json
 import os
 import re
@@ -704,6 +705,16 @@ def test_predict_resumes_and_refuses_another_runs_outputs(model_file, tmp_path, 
     assert again["resumed_frames"] == 1 and again["objects"] == first["objects"]
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*.*")} == files
     assert not list(out.rglob("*.tmp"))
+    # A second run into this --out while one runs is refused, naming it: both wrote every
+    # frame, and with --overwrite the second deleted the first's outputs as it wrote them.
+    with open(out / ".lock", "w") as other:  # the first run, as its lock shows it
+        fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        other.write("pid 4242\n")
+        other.flush()
+        with pytest.raises(ValueError, match=r"o: in use by another predict run \(pid 4242\)"):
+            P.predict(model_file, data, out, verbose=False, overwrite=True)
+    files[Path(".lock")] = b"pid 4242\n"
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*.*")} == files
     # Another run's settings, or label files of unknown origin, are not mixed in.
     with pytest.raises(ValueError, match=r"another run \(views: \['identity'\] -> \['mirror_x'\]"):
         P.predict(model_file, data, out, views=("mirror_x",), verbose=False)

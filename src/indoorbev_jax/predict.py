@@ -657,149 +657,152 @@ def predict(
     }
     if effect := mount.effect(config.sim.sensor_height):  # none: as older runs read clouds
         run["mount"] = effect
-    _prepare_out(out, run, overwrite)
-    predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity, mount)
-    grid = config.grid
-    z_range = [z - predictor.z_offset for z in grid.z_range]  # in the cloud's height
-    workspace = f"x {list(grid.x_range)}, y {list(grid.y_range)}, z {z_range} m"
-    if mount.rotated:
-        workspace += " in the level frame (--lidar-rpy)"
-    summary = {"frames": 0, "objects": 0, "thinned_frames": 0, "resumed_frames": 0,
-               "bad_frames": [], "empty_frames": []}  # fmt: skip
-    latencies, compiled, factors_said = [], [], set()
-    say = functools.partial(print, flush=True) if verbose else (lambda *a, **k: None)
-    if mount != LEVEL:
-        say(f"lidar mount: {mount.describe(config.sim.sensor_height)}")
-    for hint in mount.notes(config):
-        print(f"note: {hint}", file=sys.stderr, flush=True)
-    if level_frame and bag_out is None:
-        print(f"note: --level-frame {level_frame!r} names the frame of --bag-out's messages; "
-              "without --bag-out it is unused (KITTI labels carry no frame id)",
-              file=sys.stderr, flush=True)  # fmt: skip
-    started = time.perf_counter()
+    # A second run into this --out is refused while one runs: both wrote every frame.
+    with kitti.hold_folder(out, "predict run", "--out"):
+        _prepare_out(out, run, overwrite)
+        predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity, mount)
+        grid = config.grid
+        z_range = [z - predictor.z_offset for z in grid.z_range]  # in the cloud's height
+        workspace = f"x {list(grid.x_range)}, y {list(grid.y_range)}, z {z_range} m"
+        if mount.rotated:
+            workspace += " in the level frame (--lidar-rpy)"
+        summary = {"frames": 0, "objects": 0, "thinned_frames": 0, "resumed_frames": 0,
+                   "bad_frames": [], "empty_frames": []}  # fmt: skip
+        latencies, compiled, factors_said = [], [], set()
+        say = functools.partial(print, flush=True) if verbose else (lambda *a, **k: None)
+        if mount != LEVEL:
+            say(f"lidar mount: {mount.describe(config.sim.sensor_height)}")
+        for hint in mount.notes(config):
+            print(f"note: {hint}", file=sys.stderr, flush=True)
+        if level_frame and bag_out is None:
+            print(f"note: --level-frame {level_frame!r} names the frame of --bag-out's messages; "
+                  "without --bag-out it is unused (KITTI labels carry no frame id)",
+                  file=sys.stderr, flush=True)  # fmt: skip
+        started = time.perf_counter()
 
-    def run_frames():
-        for position, frame in enumerate(frames_in, 1):
-            check_interrupted()
-            count = f"[{position}/{total}] {frame.frame_id}"
-            if frame.error is not None:
-                if not skip_bad_frames:
-                    raise type(frame.error)(
-                        f"{frame.error} (frame {frame.frame_id}; --skip-bad-frames skips it)"
-                    ) from None
-                summary["bad_frames"].append(frame.frame_id)
-                print(f"{count}: skipped: {frame.error}", file=sys.stderr, flush=True)
-                continue
-            label_path = out / "label_2" / f"{frame.frame_id}.txt"
-            mask_path = out / "mask_2" / f"{frame.frame_id}.png"
-            picture_path = out / "pictures" / f"{frame.frame_id}.png"
-            wanted = [label_path, mask_path] + ([picture_path] if pictures else [])
-            summary["frames"] += 1
-            done = all(p.exists() for p in wanted)
-            picture = pictures and picture_path
-            damage = done and _damaged_outputs(label_path, mask_path, picture, config)
-            if damage:  # a power cut or an edit: predicted again below
-                print(f"{count}: {damage}; predicting it again", file=sys.stderr, flush=True)
-            if done and not damage:
-                summary["resumed_frames"] += 1
-                # No model call, but the cloud is read as the first run read it: "auto"
-                # intensity units carry over to later frames (a resumed run read a dark Livox
-                # scan after them in other units), and the summary counts it again.
-                _, valid, counts = predictor.prepare(frame.points)
-                tally(frame, valid, counts)
-            else:
-                line = predict_frame(frame, count, label_path, mask_path, picture_path)
-                say(line)
-            labels = kitti.read_labels(label_path, config.data)  # what the bag gets too
-            summary["objects"] += len(labels)
-            default_ns = position * 100_000_000  # 10 Hz for inputs without times
-            log_ns = frame.log_ns if frame.log_ns is not None else default_ns
-            if mount.rotated:  # the bag's cloud in the detections' frame
-                yield log_ns, level_frame, mount.levelled(frame.points), labels, frame.stamp_ns
-            else:
-                yield log_ns, frame.frame_name, frame.points, labels, frame.stamp_ns
+        def run_frames():
+            for position, frame in enumerate(frames_in, 1):
+                check_interrupted()
+                count = f"[{position}/{total}] {frame.frame_id}"
+                if frame.error is not None:
+                    if not skip_bad_frames:
+                        raise type(frame.error)(
+                            f"{frame.error} (frame {frame.frame_id}; --skip-bad-frames skips it)"
+                        ) from None
+                    summary["bad_frames"].append(frame.frame_id)
+                    print(f"{count}: skipped: {frame.error}", file=sys.stderr, flush=True)
+                    continue
+                label_path = out / "label_2" / f"{frame.frame_id}.txt"
+                mask_path = out / "mask_2" / f"{frame.frame_id}.png"
+                picture_path = out / "pictures" / f"{frame.frame_id}.png"
+                wanted = [label_path, mask_path] + ([picture_path] if pictures else [])
+                summary["frames"] += 1
+                done = all(p.exists() for p in wanted)
+                picture = pictures and picture_path
+                damage = done and _damaged_outputs(label_path, mask_path, picture, config)
+                if damage:  # a power cut or an edit: predicted again below
+                    print(f"{count}: {damage}; predicting it again", file=sys.stderr, flush=True)
+                if done and not damage:
+                    summary["resumed_frames"] += 1
+                    # No model call, but the cloud is read as the first run read it: "auto"
+                    # intensity units carry over to later frames (a resumed run read a dark Livox
+                    # scan after them in other units), and the summary counts it again.
+                    _, valid, counts = predictor.prepare(frame.points)
+                    tally(frame, valid, counts)
+                else:
+                    line = predict_frame(frame, count, label_path, mask_path, picture_path)
+                    say(line)
+                labels = kitti.read_labels(label_path, config.data)  # what the bag gets too
+                summary["objects"] += len(labels)
+                default_ns = position * 100_000_000  # 10 Hz for inputs without times
+                log_ns = frame.log_ns if frame.log_ns is not None else default_ns
+                if mount.rotated:  # the bag's cloud in the detections' frame
+                    yield log_ns, level_frame, mount.levelled(frame.points), labels, frame.stamp_ns
+                else:
+                    yield log_ns, frame.frame_name, frame.points, labels, frame.stamp_ns
 
-    def tally(frame, valid, counts) -> str:
-        """Counts a thinned or empty frame into the summary; the note its line gets."""
-        dropped = counts["dropped_points"]
-        summary["thinned_frames"] += int(dropped > 0)
-        note = (
-            f"; {dropped} of {dropped + config.data.max_points} valid points left out "
-            f"(data.max_points={config.data.max_points}, the rest spread over the scan)"
-            if dropped
-            else ""
-        )
-        if not valid.any():
-            summary["empty_frames"].append(frame.frame_id)
-            note += (
-                f"; warning: none of its {len(frame.points)} points is valid "
-                f"({counts['nonfinite_points']} non-finite, {counts['blind_points']} within "
-                f"sim.min_range={config.sim.min_range} m of the sensor, "
-                f"{counts['outside_points']} outside the workspace {workspace}): check the "
-                "cloud's frame and units"
+        def tally(frame, valid, counts) -> str:
+            """Counts a thinned or empty frame into the summary; the note its line gets."""
+            dropped = counts["dropped_points"]
+            summary["thinned_frames"] += int(dropped > 0)
+            note = (
+                f"; {dropped} of {dropped + config.data.max_points} valid points left out "
+                f"(data.max_points={config.data.max_points}, the rest spread over the scan)"
+                if dropped
+                else ""
             )
-        return note
+            if not valid.any():
+                summary["empty_frames"].append(frame.frame_id)
+                note += (
+                    f"; warning: none of its {len(frame.points)} points is valid "
+                    f"({counts['nonfinite_points']} non-finite, {counts['blind_points']} within "
+                    f"sim.min_range={config.sim.min_range} m of the sensor, "
+                    f"{counts['outside_points']} outside the workspace {workspace}): check the "
+                    "cloud's frame and units"
+                )
+            return note
 
-    def predict_frame(frame, count, label_path, mask_path, picture_path) -> str:
-        start = time.perf_counter()
-        padded, valid, _ = predictor.prepare(frame.points)
-        final, output, bev = predictor.infer(padded, valid)
-        ms = 1e3 * (time.perf_counter() - start)
-        if compiled:  # the first model call of this process compiles: not timed
-            latencies.append(ms)
-        compiled.append(True)
-        labels, ids = predictor.labels(final, output, boxes)
-        kitti.write_mask(mask_path, ids)
-        if pictures:
-            pic = render_prediction(config, padded, valid, output, bev, labels, ids)
-            kitti.atomic_write(picture_path, lambda p: pic.save(p, format="PNG"))
-        kitti.write_labels(label_path, labels, names)  # last: marks the frame done
-        note = tally(frame, valid, predictor.last_counts)
-        factor = predictor.last_intensity_factor
-        if factor != 1.0 and factor not in factors_said:
-            factors_said.add(factor)
+        def predict_frame(frame, count, label_path, mask_path, picture_path) -> str:
+            start = time.perf_counter()
+            padded, valid, _ = predictor.prepare(frame.points)
+            final, output, bev = predictor.infer(padded, valid)
+            ms = 1e3 * (time.perf_counter() - start)
+            if compiled:  # the first model call of this process compiles: not timed
+                latencies.append(ms)
+            compiled.append(True)
+            labels, ids = predictor.labels(final, output, boxes)
+            kitti.write_mask(mask_path, ids)
+            if pictures:
+                pic = render_prediction(config, padded, valid, output, bev, labels, ids)
+                kitti.atomic_write(picture_path, lambda p: pic.save(p, format="PNG"))
+            kitti.write_labels(label_path, labels, names)  # last: marks the frame done
+            note = tally(frame, valid, predictor.last_counts)
+            factor = predictor.last_intensity_factor
+            if factor != 1.0 and factor not in factors_said:
+                factors_said.add(factor)
+                say(
+                    f"{frame.frame_id}: intensity scaled by {factor:.6g} and clipped to [0, 1], "
+                    f"the simulator's reflectivity range ({intensity!r} units; --intensity sets "
+                    "them)"
+                )
+            done = summary["frames"] - summary["resumed_frames"]
+            left = total - (summary["frames"] + len(summary["bad_frames"]))
+            eta = (time.perf_counter() - started) / done * left
+            objects = f"{len(labels)} object" + ("" if len(labels) == 1 else "s")
+            return f"{count}: {objects}, {ms:.1f} ms{note} (ETA {_eta(eta)})"
+
+        if bag_out is not None:
+            from indoorbev_jax.rosbag import write_bag
+
+            write_bag(bag_out, run_frames(), names, "/points", "/detections")
+        else:
+            for _ in run_frames():
+                pass
+        frames = summary["frames"]
+        if frames == 0:
+            bad = f" ({len(summary['bad_frames'])} unreadable)" if summary["bad_frames"] else ""
+            raise ValueError(f"{input_path}: no frames found{bad}")
+        if latencies:
+            lat = np.asarray(latencies)
+            summary["latency_ms"] = {
+                "median": float(statistics.median(lat)),
+                "p90": float(np.percentile(lat, 90)),
+                "max": float(lat.max()),
+            }
+        lat = summary.get("latency_ms")
+        tail = f", median {lat['median']:.1f} ms/frame (first frame compiles)" if lat else ""
+        say(f"{frames} frames, {summary['objects']} objects written to {out}{tail}")
+        if summary["resumed_frames"]:
+            say(f"{summary['resumed_frames']} frames were done by an earlier run and kept")
+        if summary["bad_frames"]:
+            bad = summary["bad_frames"]
+            say(f"{len(bad)} unreadable frames skipped: {_first_ids(bad)}")
+        if summary["empty_frames"]:
+            empty = summary["empty_frames"]
+            say(f"{len(empty)} frames had no valid point in the workspace: {_first_ids(empty)}")
+        if summary["thinned_frames"]:
             say(
-                f"{frame.frame_id}: intensity scaled by {factor:.6g} and clipped to [0, 1], the "
-                f"simulator's reflectivity range ({intensity!r} units; --intensity sets them)"
+                f"{summary['thinned_frames']} frames had more valid points than data.max_points="
+                f"{config.data.max_points}: each kept that many, evenly spread"
             )
-        done = summary["frames"] - summary["resumed_frames"]
-        left = total - (summary["frames"] + len(summary["bad_frames"]))
-        eta = (time.perf_counter() - started) / done * left
-        objects = f"{len(labels)} object" + ("" if len(labels) == 1 else "s")
-        return f"{count}: {objects}, {ms:.1f} ms{note} (ETA {_eta(eta)})"
-
-    if bag_out is not None:
-        from indoorbev_jax.rosbag import write_bag
-
-        write_bag(bag_out, run_frames(), names, "/points", "/detections")
-    else:
-        for _ in run_frames():
-            pass
-    frames = summary["frames"]
-    if frames == 0:
-        bad = f" ({len(summary['bad_frames'])} unreadable)" if summary["bad_frames"] else ""
-        raise ValueError(f"{input_path}: no frames found{bad}")
-    if latencies:
-        lat = np.asarray(latencies)
-        summary["latency_ms"] = {
-            "median": float(statistics.median(lat)),
-            "p90": float(np.percentile(lat, 90)),
-            "max": float(lat.max()),
-        }
-    lat = summary.get("latency_ms")
-    tail = f", median {lat['median']:.1f} ms/frame (first frame compiles)" if lat else ""
-    say(f"{frames} frames, {summary['objects']} objects written to {out}{tail}")
-    if summary["resumed_frames"]:
-        say(f"{summary['resumed_frames']} frames were done by an earlier run and kept")
-    if summary["bad_frames"]:
-        bad = summary["bad_frames"]
-        say(f"{len(bad)} unreadable frames skipped: {_first_ids(bad)}")
-    if summary["empty_frames"]:
-        empty = summary["empty_frames"]
-        say(f"{len(empty)} frames had no valid point in the workspace: {_first_ids(empty)}")
-    if summary["thinned_frames"]:
-        say(
-            f"{summary['thinned_frames']} frames had more valid points than data.max_points="
-            f"{config.data.max_points}: each kept that many, evenly spread"
-        )
-    return summary
+        return summary

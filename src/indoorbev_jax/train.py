@@ -18,8 +18,6 @@ once (``experiments/sweep.py``).
 from __future__ import annotations
 
 import collections
-import errno
-import fcntl
 import functools
 import hashlib
 import json
@@ -928,47 +926,18 @@ def check_resume(
 
 
 def holds_workdir(run_fn):
-    """Runs ``run_fn(config, workdir, ...)`` holding an exclusive lock on ``workdir/.lock``
-    (``flock``: released when the run ends or its process dies). Two runs started in one
-    workdir both ran to the end, writing one metrics log and one set of checkpoints. Only
-    process 0 of a multi-host run takes it (its hosts share the workdir); a filesystem
-    without ``flock`` gets a warning and no lock."""
+    """Runs ``run_fn(config, workdir, ...)`` holding ``kitti.hold_folder``'s lock on
+    ``workdir/.lock``: two runs started in one workdir both ran to the end, writing one
+    metrics log and one set of checkpoints. Only process 0 of a multi-host run takes it
+    (its hosts share the workdir)."""
 
     @functools.wraps(run_fn)
     def run(config, workdir, *args, **kwargs):
         workdir = Path(workdir)
-        workdir.mkdir(parents=True, exist_ok=True)
-        with open(workdir / ".lock", "a+") as lock:
-            if _lock_workdir(lock, workdir):
-                lock.seek(0)
-                lock.truncate()
-                lock.write(f"pid {os.getpid()}\n")
-                lock.flush()
+        with kitti.hold_folder(workdir, "run", "workdir", take=jax.process_index() == 0):
             return run_fn(config, workdir, *args, **kwargs)
 
     return run
-
-
-def _lock_workdir(lock, workdir: Path) -> bool:
-    """Takes ``holds_workdir``'s lock on the open ``lock`` file: True when taken, False
-    when the run goes on without one; another run holding it is a ValueError naming it."""
-    if jax.process_index() != 0:  # the hosts of one multi-host run share the workdir
-        return False
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        lock.seek(0)
-        holder = lock.read().strip() or "another process"
-        raise ValueError(
-            f"{workdir}: in use by another run ({holder}); wait for it to end, or use another "
-            "workdir"
-        ) from None
-    except OSError as e:  # a filesystem without flock (Lustre without -o flock)
-        if e.errno not in (errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOLCK):
-            raise
-        log.warning("%s: cannot lock the workdir (%s); running without", workdir, e)
-        return False
-    return True
 
 
 @holds_workdir

@@ -1,6 +1,7 @@
 """KITTI and ROS2-bag export: exact round trips, splits, and resuming after a kill."""
 
 import dataclasses
+import fcntl
 import filecmp
 import json
 import os
@@ -313,6 +314,24 @@ def test_export_refuses_dataset_files_without_export_json(exported, tmp_path):
     with pytest.raises(export_mod.ExportError, match=r"pred: holds label_2/ \(20 files\), mask_2/"):
         export_mod.export(pred, 2, SEED, CFG, progress=False)
     assert _tree(copy) == before and _tree(pred) == before_pred  # nothing written
+
+
+def test_an_export_running_in_the_folder_refuses_a_second(exported, tmp_path):
+    """Two exports into one folder both wrote every frame; the second is now refused,
+    naming the first, and writes nothing."""
+    root, _, _ = exported
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    with open(copy / ".lock", "w") as other:  # the first export, as its lock shows it
+        fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        other.write("pid 4242\n")
+        other.flush()
+        before = _tree(copy)
+        with pytest.raises(ValueError, match=r"copy: in use by another export \(pid 4242\)"):
+            export_mod.export(copy, FRAMES, SEED, CFG, progress=False)
+        assert _tree(copy) == before
+    export_mod.export(copy, FRAMES, SEED, CFG, progress=False)  # once it has ended
+    assert (copy / ".lock").read_text() == f"pid {os.getpid()}\n"
 
 
 def test_bad_options_fail_before_any_frame(cache, tmp_path):

@@ -24,7 +24,11 @@ killed export never leaves a half-written file under a final name.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
+import fcntl
+import logging
 import math
 import os
 import re
@@ -38,6 +42,8 @@ from PIL import Image
 
 from indoorbev_jax.config import DataConfig
 from indoorbev_jax.geometry import wrap_angle
+
+log = logging.getLogger(__name__)
 
 ROT_Y_LIMIT = 3.141592  # the largest six-decimal |rotation_y| inside [-pi, pi]
 
@@ -175,6 +181,50 @@ def remove_stale_temporaries(folder: Path, names: str, min_age: float = 60.0) ->
                 path.unlink()
         except OSError:  # gone meanwhile, or not ours to remove: left alone
             pass
+
+
+@contextlib.contextmanager
+def hold_folder(folder: str | os.PathLike, job: str, place: str, take: bool = True):
+    """Holds an exclusive ``flock`` on ``folder/.lock`` (its content: the pid) while the
+    block runs, so that a second ``job`` started on the same folder is refused, naming the
+    first: two runs writing one folder both ran to the end before. The lock goes with its
+    process, a kill -9 included; a left-over file means nothing. A filesystem without
+    ``flock`` gets a warning and no lock; ``take=False`` takes none (the other processes
+    of a multi-host run, which share the folder). ``folder`` is made if missing.
+
+    Raises:
+      ValueError: another process holds the lock; the message names it (its pid) and
+        suggests another ``place`` (say "workdir" or "--out").
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / ".lock", "a+") as lock:
+        if take and _take_lock(lock, folder, job, place):
+            lock.seek(0)
+            lock.truncate()
+            lock.write(f"pid {os.getpid()}\n")
+            lock.flush()
+        yield
+
+
+def _take_lock(lock, folder: Path, job: str, place: str) -> bool:
+    """``hold_folder``'s lock on the open ``lock`` file: True when taken, False when the job
+    goes on without one; another process holding it is a ValueError naming it."""
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        holder = lock.read().strip() or "another process"
+        raise ValueError(
+            f"{folder}: in use by another {job} ({holder}); wait for it to end, or use "
+            f"another {place}"
+        ) from None
+    except OSError as e:  # a filesystem without flock (Lustre without -o flock)
+        if e.errno not in (errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOLCK):
+            raise
+        log.warning("%s: cannot lock the folder (%s); running without", folder, e)
+        return False
+    return True
 
 
 # Points ------------------------------------------------------------------------------------
