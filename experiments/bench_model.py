@@ -148,7 +148,9 @@ def build_peer(preset: str, mode: str, batch: int, up_mode: str, bf16: bool = Fa
     import torch
     import torch_indoorbev as peer
 
-    torch.set_num_threads(2)
+    # As many threads as XLA's CPU pool: the cores this process may run on (the 2-core
+    # machines of the recorded rows gave 2, as the former fixed setting did).
+    torch.set_num_threads(len(os.sched_getaffinity(0)))
     cuda = jax.devices()[0].platform == "gpu" and torch.cuda.is_available()
     # float32 matmuls on TF32 tensor cores, as XLA runs them on a GPU by default
     # (jax_default_matmul_precision); torch's default is full FP32, 4-8x slower there.
