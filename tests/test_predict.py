@@ -1,5 +1,6 @@
 """Predict path: model files, PointCloud2 of any layout, KITTI and bag inputs agree."""
 
+import copy
 import dataclasses
 import fcntl
 import json
@@ -575,6 +576,10 @@ def test_organized_cloud_with_padded_rows_reads_each_point_once():
     msg.row_step = width * 16 - 1
     with pytest.raises(BagError, match="row_step 79 is less than width 5 x point_step 16"):
         pointcloud2_to_points(msg, "scan")
+    # A single row is read from byte 0 whatever row_step says (it was refused when 0).
+    one_row = copy.copy(msg)
+    one_row.height, one_row.row_step = 1, 0
+    np.testing.assert_array_equal(pointcloud2_to_points(one_row)[:, :3], pts[0, :, :3])
     msg.row_step, msg.fields[2].offset = width * 16 + pad, 14
     with pytest.raises(BagError, match=r"scan: field 'z' \(4 bytes at offset 14\) runs past"):
         pointcloud2_to_points(msg, "scan")

@@ -215,7 +215,9 @@ def pointcloud2_to_points(msg, source: str = "PointCloud2") -> np.ndarray:
             )
         dtypes[name] = dtype
     row_bytes = width * step
-    if height > 0 and int(msg.row_step) < row_bytes:
+    # One row is read from byte 0 whatever row_step says, as PCL and ROS 2's read_points do:
+    # publishers written by hand often leave it 0.
+    if height > 1 and int(msg.row_step) < row_bytes:
         raise BagError(
             f"{source}: row_step {msg.row_step} is less than width {width} x point_step {step}"
         )
