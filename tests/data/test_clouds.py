@@ -218,6 +218,12 @@ def test_empty_and_odd_pcd_headers(tmp_path):
     content = good.read_bytes()
     good.write_bytes("# scanné à Lyon\n".encode() + content)
     np.testing.assert_array_equal(clouds.read_pcd(good), POINTS)
+    # Comments after the values, as PCL reads them ("WIDTH 3 # points" was refused).
+    commented = content.replace(b"WIDTH 50", b"WIDTH 50 # per row").replace(
+        b"DATA binary", "DATA binary\t# écrit à Lyon".encode()
+    )
+    good.write_bytes(commented)
+    np.testing.assert_array_equal(clouds.read_pcd(good), POINTS)
     good.write_bytes(content.replace(b"POINTS 50", b"POINTS -1"))
     with pytest.raises(kitti.DatasetError, match=r"g\.pcd: WIDTH 50, HEIGHT 1, POINTS -1"):
         clouds.read_pcd(good)

@@ -104,15 +104,14 @@ def _parse_pcd_header(path: Path, data: bytes) -> tuple[dict[str, list[str]], in
         end = data.find(b"\n", pos)
         if end < 0:
             raise DatasetError(f"{path}:{lineno}: the header ends without a DATA line")
-        if data[pos:end].lstrip().startswith(b"#"):  # a comment, in any encoding
-            pos = end + 1
-            continue
+        # A comment, whole-line or after the values ("WIDTH 3 # per row"), in any encoding.
+        content = data[pos:end].split(b"#", 1)[0]
         try:
-            line = data[pos:end].decode("ascii").strip()
+            line = content.decode("ascii").strip()
         except UnicodeDecodeError as e:
             raise DatasetError(f"{path}:{lineno}: not a PCD header line ({e})") from e
         pos = end + 1
-        if not line or line.startswith("#"):
+        if not line:
             continue
         key, *values = line.split()
         if key.upper() not in _PCD_HEADER:
