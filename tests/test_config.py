@@ -31,6 +31,43 @@ def test_preset_grids():
         assert Config.from_dict(cfg.to_dict()) == cfg
 
 
+def test_the_paper_preset_holds_designs_numbers():
+    """Each value as DESIGN.md (section) and the paper state it: the loss tests take their
+    weights from LossConfig itself, so a changed default passed them all."""
+    from indoorbev_sim.objects import CLASSES
+
+    from indoorbev_jax.models.swin import stage_geometry
+
+    cfg = Config.paper()
+    names = ("Table", "Chair", "Sofa", "Shelf", "Cabinet", "Box", "Person", "Robot", "Misc")
+    assert cfg.data.class_names == names  # 4; and the simulator labels in the same order
+    assert tuple(spec.name for spec in CLASSES) == names
+    grid = cfg.grid  # 2
+    assert (grid.x_range, grid.y_range, grid.z_range, grid.cell_size) == (
+        (-5.0, 5.0), (-5.0, 5.0), (-3.0, 3.0), 0.02
+    )  # fmt: skip
+    bb = cfg.backbone  # 6
+    assert (bb.embed_dims, bb.depths, bb.num_heads, bb.strides) == (
+        (64, 128, 256, 512), (1, 1, 1, 1), (2, 4, 8, 8), (1, 2, 2, 2)
+    )  # fmt: skip
+    assert (bb.window_size, bb.mlp_ratio, bb.out_indices) == (7, 2.0, (0, 1, 2, 3))
+    # Stages 2 and 4 shifted by 3; the grid padded once to 504: 504 -> 252 -> 126 -> 63.
+    assert bb.shifted == (False, True, False, True) and bb.shift_size == 3
+    assert [res for res, _, _ in stage_geometry(500, bb)] == [504, 252, 126, 63]
+    head = cfg.head  # 7: 30 queries, 4 layers, 8 heads of C_hid 64, FFN 256, paper mode
+    assert (head.hidden_dim, head.num_queries, head.num_layers) == (64, 30, 4)
+    assert (head.num_heads, head.ffn_dim, head.upsampler_skips) == (8, 256, False)
+    loss = cfg.loss  # 8, and the paper's loss and cost weights
+    weights = (loss.cls_weight, loss.dice_weight, loss.focal_weight, loss.dims_weight,
+               loss.pos_weight, loss.yaw_weight, loss.background_weight)  # fmt: skip
+    assert weights == (2.0, 5.0, 2.0, 0.1, 0.1, 0.1, 0.1) and loss.aux_loss
+    assert (loss.cost_cls, loss.cost_dice, loss.cost_focal, loss.cost_reg) == (2.0, 5.0, 2.0, 0.1)
+    inference = cfg.inference  # 9: score 0.8, mask 0.5, a segment keeps 80 % of its mask
+    assert (inference.score_threshold, inference.mask_threshold) == (0.8, 0.5)
+    assert inference.overlap_threshold == 0.8
+    assert (cfg.train.learning_rate, cfg.train.weight_decay) == (5e-5, 1e-4)  # the paper
+
+
 @pytest.mark.parametrize(
     "build, field",
     [

@@ -171,6 +171,20 @@ def test_cloud_is_dense_only_without_invalid_points():
         assert msg.is_dense is True and msg.width == 0
 
 
+def test_cloud_msg_layout_is_float32_xyzi_as_sensor_msgs_defines_it():
+    """The bytes a ROS client reads: fields x, y, z, intensity at offsets 0, 4, 8, 12 as
+    PointField.FLOAT32 (7), little-endian, 16 bytes a point, one row of the points as given
+    (checked against the message definition's constant, not our reader)."""
+    points = _scan(20)
+    msg = cloud_msg(TS, points, 1, "lidar")
+    float32 = TS.types["sensor_msgs/msg/PointField"].FLOAT32
+    assert float32 == 7
+    fields = [(f.name, f.offset, f.datatype, f.count) for f in msg.fields]
+    assert fields == [("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1), ("intensity", 12, 7, 1)]
+    assert (msg.is_bigendian, msg.point_step, msg.height, msg.width) == (False, 16, 1, 20)
+    assert msg.row_step == 16 * 20 and bytes(msg.data) == points.astype("<f4").tobytes()
+
+
 def test_occupancy_grid_layout():
     grid = CFG.grid
     h, w = grid.shape

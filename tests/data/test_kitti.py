@@ -53,6 +53,7 @@ def test_camera_convention_fields():
     (line,) = kitti.labels_to_lines(labels, CLASS_NAMES)
     f = line.split()
     assert len(f) == 15 and f[0] == "Chair"
+    assert f[1] == "0.00" and f[2] == "0"  # truncation is 0 (DESIGN 3); occlusion as given
     assert [float(v) for v in f[3:8]] == [-10, 0, 0, 0, 0]
     h, w, l, xc, yc, zc, ry = (float(v) for v in f[8:15])  # noqa: E741
     assert (h, w, l) == (1.0, 2.0, 3.0)
@@ -62,9 +63,18 @@ def test_camera_convention_fields():
     assert -math.pi <= ry <= math.pi  # KITTI's range, after rounding to six decimals
 
 
+def test_prediction_lines_end_with_the_score():
+    labels = kitti.ObjectLabels([6], [[0.5, 0.4, 1.7]], [[1.0, 0.0, 0.85]], [0.0], [2], [0.75])
+    f = kitti.labels_to_lines(labels, CLASS_NAMES)[0].split()
+    assert len(f) == 16 and f[0] == "Person" and f[2] == "2" and float(f[15]) == 0.75
+
+
 def test_points_round_trip_and_bad_size(tmp_path):
     pts = np.random.default_rng(0).normal(size=(100, 4)).astype(np.float32)
     kitti.write_points(tmp_path / "a.bin", pts)
+    # The format itself (DESIGN 3): little-endian float32, N x 4, nothing else in the file.
+    raw = np.fromfile(tmp_path / "a.bin", "<f4")
+    np.testing.assert_array_equal(raw.reshape(-1, 4), pts)
     np.testing.assert_array_equal(kitti.read_points(tmp_path / "a.bin"), pts)
     (tmp_path / "bad.bin").write_bytes(b"\0" * 20)
     with pytest.raises(kitti.DatasetError, match=r"bad\.bin: size 20 bytes"):
