@@ -12,7 +12,12 @@ from __future__ import annotations
 import argparse
 import sys
 
-from indoorbev_jax.cli import RawHelpFormatter, exit_with
+from indoorbev_jax.cli import (
+    RawHelpFormatter,
+    add_distributed_arguments,
+    exit_with,
+    start_distributed,
+)
 from indoorbev_jax.config import add_config_arguments, config_from_args
 from indoorbev_jax.sweep import run_sweep, stack_hypers
 
@@ -37,7 +42,12 @@ def main(argv=None) -> int:
                        help=f"K values of loss.{name} weight (default: the config's)")  # fmt: skip
     p.add_argument("--skip-bad-frames", action="store_true", help="skip malformed frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_distributed_arguments(p)
     args = p.parse_args(argv)
+    try:
+        start_distributed(args)  # before anything touches a device (stack_hypers does)
+    except ValueError as e:
+        p.error(str(e))
     config = config_from_args(args)
     overrides = {
         name: getattr(args, f"{name}_weights")

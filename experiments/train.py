@@ -11,7 +11,12 @@ import argparse
 import logging
 import sys
 
-from indoorbev_jax.cli import HelpFormatter, exit_with
+from indoorbev_jax.cli import (
+    HelpFormatter,
+    add_distributed_arguments,
+    exit_with,
+    start_distributed,
+)
 from indoorbev_jax.config import add_config_arguments, config_from_args
 from indoorbev_jax.train import train_and_evaluate
 
@@ -36,6 +41,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="with --init-from: load the parameters that match by name and shape, keep fresh "
         "ones for the rest (e.g. --set head.upsampler_skips=false from a model with skips)",
     )
+    add_distributed_arguments(p)
     return p.parse_args(argv)
 
 
@@ -51,6 +57,7 @@ def main(argv=None) -> int:
     ours.propagate = False
     args = parse_args(argv)
     try:
+        start_distributed(args)  # before anything touches a device
         train_and_evaluate(
             config_from_args(args),
             args.workdir,

@@ -666,6 +666,9 @@ def test_a_workdir_in_use_by_another_run_is_refused(data, tmp_path, quick_start,
         with monkeypatch.context() as m, pytest.raises(_Stop):
             m.setattr(jax, "process_index", lambda: 1)
             T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
+        # ... and leaves the run's own files to process 0: each host wrote every metrics line.
+        for name in ("config.json", "run.json", "metrics.jsonl", "tb"):
+            assert not (workdir / name).exists(), name
     # A filesystem without flock (Lustre without -o flock): a warning, and the run starts.
     import errno
 

@@ -226,6 +226,49 @@ def add_boxes_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_distributed_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--distributed`` and the settings ``jax.distributed.initialize`` takes, for a
+    training script run once per host (``start_distributed`` acts on them)."""
+    group = parser.add_argument_group("several hosts")
+    group.add_argument(
+        "--distributed",
+        action="store_true",
+        help="this is one process of a multi-host run: call jax.distributed.initialize() "
+        "first, which finds the coordinator, the process count and this process's id under "
+        "SLURM, Open MPI or on Cloud TPU; elsewhere give the three options below. Every "
+        "host runs the same command on one shared --workdir",
+    )
+    group.add_argument("--coordinator-address", metavar="HOST:PORT",
+                       help="process 0's address (or env JAX_COORDINATOR_ADDRESS)")  # fmt: skip
+    group.add_argument("--num-processes", type=positive_int, help="processes in the run")
+    group.add_argument("--process-id", type=nonnegative_int, help="this process's index")
+
+
+def start_distributed(args: argparse.Namespace) -> None:
+    """Joins a multi-host run when ``args.distributed`` (before anything touches a device);
+    a failure is a ValueError naming the flag, as is a host setting without the flag."""
+    given = [f for f in ("coordinator_address", "num_processes", "process_id")
+             if getattr(args, f) is not None]  # fmt: skip
+    if not args.distributed:
+        if given:
+            flags = ", ".join("--" + f.replace("_", "-") for f in given)
+            raise ValueError(f"{flags}: only with --distributed (a multi-host run)")
+        return
+    import jax
+
+    try:
+        jax.distributed.initialize(
+            coordinator_address=args.coordinator_address,
+            num_processes=args.num_processes,
+            process_id=args.process_id,
+        )
+    except (ValueError, RuntimeError) as e:
+        raise ValueError(
+            f"--distributed: jax.distributed.initialize() failed ({e}); outside SLURM, Open "
+            "MPI and Cloud TPU, give --coordinator-address, --num-processes and --process-id"
+        ) from e
+
+
 def join_negative_values(argv: list[str] | None, flags=("--lidar-rpy",)) -> list[str]:
     """``argv`` (None: ``sys.argv[1:]``) with ``FLAG -5,0,0`` written ``FLAG=-5,0,0``:
     argparse takes a negative number for a value only when it is one number, so a

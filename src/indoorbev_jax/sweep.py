@@ -43,6 +43,7 @@ from indoorbev_jax.train import (
     run_record,
     truncate_log,
     write_text_atomic,
+    writes_run_files,
 )
 
 
@@ -214,12 +215,13 @@ def run_sweep(
     states = states if restored is None else restored
     source, _ = make_sources(config, data, t.seed, skip_bad=skip_bad_frames, validate=False)
     log_path = workdir / "sweep.jsonl"
-    if log_path.exists():
+    primary = writes_run_files()  # one host of a multi-host run writes the run's files
+    if primary and log_path.exists():
         truncate_log(log_path, start)
-    # Written once every check has passed, as train_and_evaluate does.
-    write_text_atomic(run_path, json.dumps(run_record(data_source, "sweep")) + "\n")
-    write_text_atomic(config_path, config.to_json())
-    write_text_atomic(hypers_path, json.dumps(settings) + "\n")
+    if primary:  # written once every check has passed, as train_and_evaluate does
+        write_text_atomic(run_path, json.dumps(run_record(data_source, "sweep")) + "\n")
+        write_text_atomic(config_path, config.to_json())
+        write_text_atomic(hypers_path, json.dumps(settings) + "\n")
     database = None
     if t.augment and config.augment.gt_sampling > 0:
         database = gt_database(source, GT_DATABASE_BATCHES, config.grid)
@@ -242,8 +244,9 @@ def run_sweep(
                 # null (strict JSON) for a member none of whose steps was finite.
                 mean = [float(a / c) if c else None for a, c in zip(sums, counts, strict=True)]
                 record = {"step": done, "steps": window, "loss": mean}
-                with log_path.open("a") as f:
-                    f.write(json.dumps(record) + "\n")
+                if primary:
+                    with log_path.open("a") as f:
+                        f.write(json.dumps(record) + "\n")
                 loss_sum, finite, window = jnp.zeros(k), jnp.zeros(k), 0
             if done % t.checkpoint_every == 0 or done == t.total_steps:
                 checkpoints.save(states, done)

@@ -691,6 +691,9 @@ class MetricsLog:
 
     def __init__(self, workdir: Path, resume_step: int):
         self.path = Path(workdir) / "metrics.jsonl"
+        self.tb = None
+        if not writes_run_files():  # the other hosts of a multi-host run: process 0 logs
+            return
         if self.path.exists():
             truncate_log(self.path, resume_step)
         from tensorboardX import SummaryWriter
@@ -698,6 +701,8 @@ class MetricsLog:
         self.tb = SummaryWriter(str(Path(workdir) / "tb"), purge_step=resume_step + 1)
 
     def write(self, step: int, kind: str, values: dict) -> None:
+        if self.tb is None:
+            return
         # Undefined metrics (NaN) are written as null: strict JSON.
         clean = {
             k: (None if isinstance(v, float) and not math.isfinite(v) else v)
@@ -712,7 +717,8 @@ class MetricsLog:
         self.tb.flush()
 
     def close(self) -> None:
-        self.tb.close()
+        if self.tb is not None:
+            self.tb.close()
 
 
 # Evaluation -------------------------------------------------------------------------------
@@ -805,6 +811,13 @@ def make_sources(
         boxed = jax.jit(box_targets, static_argnums=1)
         return (lambda step, shaped=train: boxed(shaped(step), config.grid)), val
     return train, val
+
+
+def writes_run_files() -> bool:
+    """Whether this process writes a run's own files (config.json, run.json, the metrics
+    logs): the hosts of a multi-host run share the workdir, and each wrote every line of
+    metrics.jsonl (orbax coordinates the checkpoints itself)."""
+    return jax.process_index() == 0
 
 
 def write_text_atomic(path: Path, text: str) -> None:
@@ -1017,10 +1030,11 @@ def train_and_evaluate(
     step_key = jax.random.fold_in(key, KEY_STEPS)
     train_source, val_batches = make_sources(config, data, t.seed, skip_bad_frames)
     metrics_log = MetricsLog(workdir, start)
-    if record is not None:
-        write_text_atomic(workdir / "init_from.json", json.dumps(record, indent=2) + "\n")
-    write_text_atomic(run_path, json.dumps(run_record(data_source)) + "\n")
-    write_text_atomic(config_path, config.to_json())
+    if writes_run_files():
+        if record is not None:
+            write_text_atomic(workdir / "init_from.json", json.dumps(record, indent=2) + "\n")
+        write_text_atomic(run_path, json.dumps(run_record(data_source)) + "\n")
+        write_text_atomic(config_path, config.to_json())
 
     database = None
     if t.augment and config.augment.gt_sampling > 0:
