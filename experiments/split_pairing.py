@@ -11,6 +11,8 @@ test frame i with another room; ``VAL_SEED`` separates them (docs/RESULTS.md).
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -19,10 +21,12 @@ from indoorbev_sim import generate
 from indoorbev_jax.cli import RawHelpFormatter, positive_int, seed_int
 from indoorbev_jax.config import Config
 
+# eval_sim.py beside it, also when this file is loaded by path (the tests) from elsewhere.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import eval_sim  # noqa: E402
+
 
 def main(argv=None) -> dict:
-    import eval_sim
-
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=RawHelpFormatter
     )
