@@ -108,9 +108,16 @@ def test_a_mount_away_from_the_trained_tilt_is_pointed_out():
     # Trained within a jitter of the tilt: no note inside it, level-trained included.
     assert LidarMount(pitch=7.0).tilt_hint((0.0, 0.0, 0.0), 8.0) is None
     assert LidarMount(roll=-5.0, pitch=15.0).tilt_hint((0.0, 10.0, 0.0), 8.0) is None
-    hint = LidarMount(pitch=20.0).tilt_hint((0.0, 0.0, 0.0), 8.0)
-    assert "lidar within 8 deg of roll 0, pitch 0, yaw 0 deg (sim.sensor_rpy, " in hint
-    assert "sensor_tilt_jitter), 20.0 deg from this mount's" in hint
+    hint = LidarMount(pitch=20.0).tilt_hint((0.0, 10.0, 0.0), 8.0)
+    assert "lidar within 8 deg of roll 0, pitch 10, yaw 0 deg (sim.sensor_rpy, " in hint
+    assert "sensor_tilt_jitter), 10.0 deg from this mount's" in hint
+    # The jitter tilts a level lidar in every direction: a mount's yaw is no tilt (a lidar
+    # turned 90 deg about z was told it was 90 deg from the trained one).
+    assert LidarMount(yaw=90.0).tilt_hint((0.0, 0.0, 0.0), 8.0) is None
+    assert LidarMount(pitch=3.0, yaw=90.0).tilt_hint((0.0, 0.0, 0.0), 8.0) is None
+    hint = LidarMount(pitch=20.0, yaw=90.0).tilt_hint((0.0, 0.0, 0.0), 8.0)
+    assert "lidars tilted 0.0 to 8.0 deg (sim.sensor_rpy 0,0,0, sensor_tilt_jitter 8;" in hint
+    assert "as the jitter does) and this mount's --lidar-rpy 0,20,90 tilts it 20.0 deg" in hint
 
 
 def test_bad_mounts_are_named():

@@ -167,16 +167,20 @@ class LidarMount:
                 "cannot show the model what the tilt hides, so expect lower scores; a model "
                 "trained on tilts does better (sim.sensor_tilt_jitter, docs/ROBOT.md 'Mount')"
             )
-        if every_direction:
+        # The jitter tilts a level lidar in every direction (a disc of tilt directions), so
+        # there too only the size of the tilt counts, not the mount's yaw.
+        jittered_level = trained.tilt() < 1e-9
+        if every_direction or jittered_level:
             margin = max(1.0, trained_jitter)
             low, high = max(0.0, trained.tilt() - margin), trained.tilt() + margin
             if low - 1e-6 <= self.tilt() <= high + 1e-6:  # acos rounding at the ends
                 return None
+            why = "augment.rotation turned the scenes" if every_direction else "the jitter does"
             return (
                 f"the model was trained on lidars tilted {low:.1f} to {high:.1f} deg (sim."
                 f"sensor_rpy {trained.roll:g},{trained.pitch:g},{trained.yaw:g}"
                 + (f", sensor_tilt_jitter {trained_jitter:g}" if trained_jitter else "")
-                + f"; in every direction, as augment.rotation turned the scenes) and this "
+                + f"; in every direction, as {why}) and this "
                 f"mount's --lidar-rpy {self.roll:g},{self.pitch:g},{self.yaw:g} tilts it "
                 f"{self.tilt():.1f} deg; pass your lidar's real tilt, and note the model was "
                 "scored at its trained tilts only"
