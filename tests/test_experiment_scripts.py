@@ -117,7 +117,8 @@ def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tm
 
     export = _script("export_model")
     params = {"params": {"w": np.arange(3, dtype=np.float32)}}
-    export.load_params = lambda run, which: (Config.tiny(), params)  # a run's best checkpoint
+    loaded = []
+    export.load_params = lambda run, which: loaded.append(which) or (Config.tiny(), params)
     run = tmp_path / "run"
     run.mkdir()
     out = tmp_path / "m.msgpack"
@@ -129,6 +130,7 @@ def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tm
         [str(run), "--out", str(out), "--score-threshold", "0.3", "--mask-threshold", "0.4"]
     )
     config, back = load_model(out)
+    assert set(loaded) == {"best"}  # without --which: the best one (docs/TRAINING.md)
     assert (config.inference.score_threshold, config.inference.mask_threshold) == (0.3, 0.4)
     assert config.inference.views == ("identity",)
     np.testing.assert_array_equal(back["params"]["w"], params["params"]["w"])
@@ -765,3 +767,202 @@ def test_distributed_runs_join_before_training_and_name_a_failed_join(monkeypatc
     assert "--coordinator-address, --num-processes: only with --distributed" in (
         capsys.readouterr().err
     )
+
+
+def test_eval_sim_scores_the_split_and_seed_it_is_given(tmp_path, monkeypatch, capsys):
+    """``--split val`` must simulate the val scenes under ``VAL_SEED`` and the JSON must
+    record the seed used. A mutation audit: the split not passed on to the simulator, the
+    two default seeds swapped and ``setup.seed`` the default seed all passed."""
+    import json
+
+    import indoorbev_sim.generate
+    import numpy as np
+
+    from indoorbev_jax.config import InferenceConfig
+    from indoorbev_jax.metrics import Evaluator
+    from indoorbev_jax.predict import export_model
+
+    eval_sim = _script("eval_sim")
+    params = {"params": {"w": np.zeros(2, np.float32)}}
+    model = str(export_model(params, Config.tiny(), tmp_path / "m.msgpack"))
+    argv = ["--model", model, "--frames", "2", "--batch", "2", "--no-progress"]
+    scored = []
+
+    def capture(config, params, split, frames, batch, seed, inferences, *args):
+        scored.append((split, seed))
+        return [Evaluator(i, class_names=config.data.class_names) for i in inferences]
+
+    monkeypatch.setattr(eval_sim, "evaluate_sim_sweep", capture)
+    # The default seeds of docs/RESULTS.md: test 1000003, val 1000033.
+    for flags, expected in (([], ("test", 1_000_003)), (["--split", "val"], ("val", 1_000_033)),
+                            (["--split", "val", "--seed", "7"], ("val", 7))):  # fmt: skip
+        eval_sim.main([*argv, *flags, "--json", str(tmp_path / "r.json")])
+        assert scored.pop() == expected, flags
+        setup = json.loads((tmp_path / "r.json").read_text())["setup"]
+        assert (setup["split"], setup["seed"]) == expected, flags
+    capsys.readouterr()
+    # evaluate_sim_sweep simulates the split it is given.
+    simulated = []
+
+    def generator(config, split, batch):
+        simulated.append(split)
+        raise KeyboardInterrupt  # stop before anything is compiled
+
+    monkeypatch.setattr(indoorbev_sim.generate, "jitted_generate", generator)
+    eval_sim = _script("eval_sim")
+    for split in ("val", "test"):
+        with pytest.raises(KeyboardInterrupt):
+            eval_sim.evaluate_sim_sweep(Config.tiny(), None, split, 2, 2, 0, [InferenceConfig()])
+        assert simulated.pop() == split
+
+
+def test_eval_sim_columns_ranges_and_intensity_are_what_they_say():
+    """The sweep line's AP@0.25 column holds AP@0.25, the range rows are the distance in the
+    BEV plane (docstring of RANGE_EDGES) and ``--intensity-factor`` scales the intensity. A
+    mutation audit: the AP columns swapped, the 3D distance and a factor of 1 all passed."""
+    import types
+
+    import jax.numpy as jnp
+    import numpy as np
+
+    from indoorbev_jax.config import InferenceConfig
+
+    eval_sim = _script("eval_sim")
+    row = {"ap": {"0.25": 0.9, "0.5": 0.5}, "pq": 0.4, "sq": 0.8, "rq": 0.5, "miou": 0.6,
+           "semantic_miou": 0.7}  # fmt: skip
+    head, line = eval_sim.sweep_table([(InferenceConfig(0.3, 0.5), row)]).splitlines()
+    columns = dict(zip(head.split(), line.split(), strict=True))
+    assert columns == {"score": "0.3", "mask": "0.5", "AP@0.25": "90.0", "AP@0.50": "50.0",
+                       "PQ": "40.0", "SQ": "80.0", "RQ": "50.0", "mIoU": "60.0",
+                       "semIoU": "70.0"}  # fmt: skip
+    # An object 2.9 m ahead and 1 m up: 2.9 m in the BEV plane (3.07 m in 3D).
+    targets = types.SimpleNamespace(pos=np.array([[[2.9, 0.0, 1.0]]], np.float32),
+                                    classes=np.array([[0]]),
+                                    masks=np.ones((1, 1, 4, 4), bool))  # fmt: skip
+    info = types.SimpleNamespace(variant=np.array([[0]]), num_points=np.array([[50]]),
+                                 occlusion=np.array([[0]]))  # fmt: skip
+    rows = dict((name, names) for name, names, _ in eval_sim.BREAKDOWNS)["range"]
+    assert rows[int(eval_sim.frame_tags(targets, info)["range"][0, 0])] == "[2, 3) m"
+    # Intensity 0.5 x 2 = 1; z 0.25 + 0.5 = 0.75.
+    points = jnp.array([[1.0, 1.0, 0.25, 0.5]])
+    tiny = Config.tiny().grid
+    moved, kept = eval_sim.model_input(points, jnp.array([True]), tiny, 2.0, 0.5)
+    np.testing.assert_allclose(np.asarray(moved), [[1.0, 1.0, 0.75, 1.0]])
+    assert bool(kept[0])
+
+
+def test_pose_errors_compare_rectangles_in_the_bev_plane():
+    """A box is a BEV rectangle: the same rectangle given turned 90 degrees with its sides
+    swapped has no yaw or size error, a z error is no centre error, and a query of another
+    class is no match. IoU must exceed --match-iou, and the p90 row holds 90th percentiles.
+    A mutation audit: yaw modulo 180, unsorted sides, the 3D centre error, matching across
+    classes, IoU >= and the medians in the p90 row all passed."""
+    import types
+
+    import numpy as np
+
+    from indoorbev_jax.config import GridConfig
+    from indoorbev_jax.data.rasterize import rasterize_boxes
+
+    pose = _script("pose_errors")
+    grid = GridConfig(x_range=(-2.0, 2.0), y_range=(-2.0, 2.0), cell_size=0.05)
+    _, masks = rasterize_boxes(np.array([[0.8, -0.4, 1.0, 0.4, 0.3]], np.float32),
+                               np.ones(1, bool), grid)  # fmt: skip
+    masks = np.asarray(masks)
+    targets = types.SimpleNamespace(valid=np.array([True]), classes=np.array([0]),
+                                    pos=np.array([[0.8, -0.4, 0.4]], np.float32),
+                                    dims=np.array([[1.0, 0.4, 0.8]], np.float32),
+                                    yaw=np.array([0.3], np.float32), masks=masks)  # fmt: skip
+    # Query 0: class 5 on the object's mask, 1 m off; query 1: class 0, the rectangle as
+    # width x length turned 90 degrees, 0.5 m too high. Only query 1 may match.
+    panoptic = np.where(masks[0], 2, 0).astype(np.int32)  # query q: segment q + 1
+    panoptic[0, 0] = 1  # query 0's segment: a corner cell
+    output = types.SimpleNamespace(segment_valid=np.array([True, True]),
+                                   det_classes=np.array([5, 0]), det_masks=masks[[0, 0]],
+                                   instance_ids=panoptic)  # fmt: skip
+    final = types.SimpleNamespace(pos=np.array([[1.8, -0.4, 0.4], [0.8, -0.4, 0.9]], np.float32),
+                                  dims=np.array([[1.0, 0.4, 0.8], [0.4, 1.0, 0.8]], np.float32),
+                                  yaw=np.array([[0.3], [0.3 + np.pi / 2]], np.float32))  # fmt: skip
+    errors = pose.frame_errors(final, output, targets, grid, 0.5)
+    assert errors["class"].tolist() == [0]
+    for key, expected in (("centre", 0.0), ("yaw", 0.0), ("size", 0.0), ("z", 0.5), ("h", 0.0),
+                          ("IoU", 1.0)):  # fmt: skip
+        np.testing.assert_allclose(errors[key], [expected], atol=1e-4, err_msg=key)
+    # The rasterised footprint's centroid is the box centre (x 0.8, y -0.4) within a cell.
+    assert errors["gt c."][0] < grid.cell_size
+    # Mask IoU exactly 1/2 (one cell of two) is no match at --match-iou 0.5: it must exceed.
+    gt = np.zeros((1, 4, 4), bool)
+    gt[0, 0, :2] = True
+    d, g = pose.match_frame(gt & np.eye(4, dtype=bool)[0], np.array([0]), gt, np.array([0]), 0.5)
+    assert len(d) == len(g) == 0
+    d, g = pose.match_frame(gt, np.array([0]), gt, np.array([0]), 0.5)
+    assert (d.tolist(), g.tolist()) == ([0], [0])
+    # 0, 1, ..., 9: median 4.5, 90th percentile 8.1 (linear interpolation, 0.9 x 9).
+    errors = {k: np.arange(10.0) for k in pose.COLUMNS} | {"class": np.zeros(10, int)}
+    table = pose.summary(errors, ["a"])
+    assert table["all"]["centre"] == 4.5
+    np.testing.assert_allclose(table["all p90"]["centre"], 8.1)
+
+
+def test_split_pairing_pairs_frame_i_of_each_set_and_counts_the_test_objects(monkeypatch):
+    """split_pairing compares val frame i with test frame i and counts the test set's
+    objects. A mutation audit: val batch k + 1 against test batch k and the objects counted
+    from val passed. Fake draws: each frame's layout kind and variants are its key's."""
+    import collections
+
+    import jax
+    import numpy as np
+
+    pairing = _script("split_pairing")
+    Scene = collections.namedtuple("Scene", "on variant prims room")
+    Prims = collections.namedtuple("Prims", "dims")
+    Room = collections.namedtuple("Room", "kind")
+
+    def jitted_draw(config, split, batch):
+        def draw(key):
+            mark = int(np.asarray(jax.random.key_data(key)).sum() % 100_000)
+            on = np.zeros((batch, 3), bool)
+            on[:, : 3 if split == "test" else 2] = True  # 3 test objects a frame, 2 val ones
+            variant = np.full((batch, 3), mark)
+            prims = Prims(np.zeros((batch, 3, 3), np.float32))
+            return (Scene(on, variant, prims, Room(np.full(batch, mark))),)
+
+        return draw
+
+    monkeypatch.setattr(pairing.generate, "jitted_draw", jitted_draw)
+    # One root for both sets (--val-seed = the test seed, 1000003): frame i of each set has
+    # the same key, so all 4 frames share the layout kind and every val object (2 a frame)
+    # is a twin; the test set has 3 objects a frame.
+    counts = pairing.main(["--val-seed", "1000003", "--frames", "4", "--batch", "2"])
+    assert counts == {"frames": 4, "same layout kind": 4, "test objects": 12, "twins in val": 8}
+
+
+def test_plot_curves_draws_every_quantity_a_training_log_holds(tmp_path, monkeypatch):
+    """Each panel gets the points of its key in a run's metrics.jsonl, whose eval lines
+    train.py writes as ``f"ap{threshold}"`` for the thresholds 0.25 and 0.5: "ap0.25",
+    "ap0.5". A mutation audit: the AP@0.50 panel reading "ap0.50" (empty) passed."""
+    import json
+
+    import matplotlib.axes
+
+    plot = _script("plot_curves")
+    run = tmp_path / "run"
+    run.mkdir()
+    rows = [{"step": s, "kind": "train", "loss": 1.0 / s, "dice_final": 0.5 / s}
+            for s in (1, 2, 3)]  # fmt: skip
+    rows += [{"step": s, "kind": "eval", "ap0.25": 0.1 * s, "ap0.5": 0.05 * s, "pq": 0.1,
+              "miou": 0.2} for s in (2, 3)]  # fmt: skip
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    drawn = []
+    real = matplotlib.axes.Axes.plot
+
+    def count(self, x, y, *args, **kwargs):
+        drawn.append(len(x))
+        return real(self, x, y, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "plot", count)
+    plot.main([str(run), "--out", str(tmp_path / "curves.png")])
+    # 3 train lines, 2 eval lines.
+    assert dict(zip([t for _, _, t in plot.PANELS], drawn, strict=True)) == {
+        "training loss": 3, "train dice loss (last layer)": 3, "val AP@0.25": 2,
+        "val AP@0.50": 2, "val PQ": 2, "val mIoU": 2}  # fmt: skip

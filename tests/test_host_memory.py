@@ -53,6 +53,29 @@ def test_off_unless_asked(monkeypatch):
     assert host_memory.retain_freed_memory() is False
 
 
+def test_the_settings_are_one_arena_no_mmap_and_no_trim(monkeypatch):
+    """The mallopt calls, seen through a fake glibc: all three settings, with <malloc.h>'s
+    parameter numbers (M_ARENA_MAX -8, M_MMAP_MAX -4, M_TRIM_THRESHOLD -1), and retained
+    only if every one took. A mutation audit: two arenas, a wrong parameter number, a
+    setting left out and "any one took" were not seen by the probe below on every machine."""
+    calls, refused = [], set()
+
+    class FakeGlibc:
+        def mallopt(self, param, value):
+            calls.append((param, value))
+            return 0 if param in refused else 1  # mallopt: 1 on success
+
+    monkeypatch.setattr(host_memory, "glibc", FakeGlibc)
+    monkeypatch.setattr(host_memory, "retained", False)
+    assert host_memory.retain_freed_memory(force=True) is True and host_memory.retained
+    # -1 as size_t: the largest trim threshold, so the heap's top is never given back.
+    assert sorted(calls) == [(-8, 1), (-4, 0), (-1, -1)]
+    for param in (-8, -4, -1):
+        refused, calls[:] = {param}, []
+        assert host_memory.retain_freed_memory(force=True) is False, param
+        assert not host_memory.retained
+
+
 @pytest.mark.skipif(host_memory.glibc() is None, reason="mallopt settings are glibc's")
 def test_retained_memory_is_not_faulted_in_again():
     retained = probe(INDOORBEV_RETAIN_MEMORY="1")

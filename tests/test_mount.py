@@ -83,6 +83,8 @@ def test_full_turns_and_inf_points_are_no_rotation_and_no_warning():
     # 28.65 deg); whole degrees alone do not.
     assert LidarMount(roll=1.0, pitch=0.5).radians_hint().endswith("pass 57.3,28.65,0")
     assert LidarMount(roll=1.0, pitch=2.0).radians_hint() is None
+    # Radians only if every angle could be one: a pitch of 20 (> pi) says degrees.
+    assert LidarMount(roll=0.5, pitch=20.0).radians_hint() is None
 
 
 def test_a_mount_away_from_the_trained_tilt_is_pointed_out():

@@ -1017,6 +1017,8 @@ def test_a_negative_roll_is_a_value_not_an_option(model_file, tmp_path, capsys):
 
     assert join_negative_values(["--lidar-rpy", "-5,10,0", "-x", "-1"]) == [
         "--lidar-rpy=-5,10,0", "-x", "-1"]  # fmt: skip
+    # A fraction without its leading zero is a number too (float("-.5") == -0.5).
+    assert join_negative_values(["--lidar-rpy", "-.5,0,0"]) == ["--lidar-rpy=-.5,0,0"]
     kitti.write_points(tmp_path / "scan.bin", _scans(1, seed=3, points=200)[0])
     argv = ["predict", str(model_file), str(tmp_path / "scan.bin"), "--out", str(tmp_path / "o"),
             "--no-pictures", "--lidar-rpy", "-5,10,0"]  # fmt: skip

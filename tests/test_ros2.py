@@ -625,6 +625,22 @@ def test_node_settings_fail_before_the_node_starts(monkeypatch, capsys):
     monkeypatch.setattr(detect, "run_detect_node", interrupted)
     assert cli.main(["ros2", "detect", "--checkpoint", "m"]) == 130
     assert capsys.readouterr().err == "indoorbev ros2 detect: interrupted\n"
+    # Every flag reaches the node as given (a mutation audit: --max-frames dropped passed).
+    seen = {}
+    monkeypatch.setattr(detect, "run_detect_node", lambda checkpoint, **kw: seen.update(kw))
+    argv = ["ros2", "detect", "--checkpoint", "m", "--topic", "/in", "--out-ns", "/o",
+            "--reliable", "--record", "bag", "--storage", "mcap", "--log-every", "2.5",
+            "--skip-nonfinite", "--max-frames", "3", "--intensity", "unit", "--views",
+            "identity,mirror_x", "--boxes", "head", "--lidar-rpy", "0,20,0", "--lidar-height",
+            "0.5", "--level-frame", "lvl", "--ros-args", "-r", "a:=b"]  # fmt: skip
+    assert cli.main(argv) == 0
+    mount = seen.pop("mount")
+    assert (mount.roll, mount.pitch, mount.yaw, mount.height) == (0.0, 20.0, 0.0, 0.5)
+    assert seen == {"topic": "/in", "out_ns": "/o", "reliable": True, "record": "bag",
+                    "storage": "mcap", "log_every": 2.5, "max_frames": 3,
+                    "ros_args": ["-r", "a:=b"], "skip_nonfinite": True, "intensity": "unit",
+                    "views": ("identity", "mirror_x"), "boxes": "head",
+                    "level_frame": "lvl"}  # fmt: skip
 
 
 def test_shutdown_work_holds_a_second_ctrl_c(capsys):

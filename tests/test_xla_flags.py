@@ -27,6 +27,12 @@ def test_apply_cpu_defaults_respects_the_user(monkeypatch):
     monkeypatch.delenv("INDOORBEV_XLA_DEFAULTS", raising=False)
     assert xla_flags.apply_cpu_defaults() == TESTED
     assert os.environ.get("XLA_FLAGS", "") == (xla_flags.NO_YNN_FUSIONS if TESTED else "")
+    # The user's other flags are kept, ours added after them.
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=4")
+    assert xla_flags.apply_cpu_defaults() == TESTED
+    assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=4" + (
+        f" {xla_flags.NO_YNN_FUSIONS}" if TESTED else ""
+    )
     mine = "--xla_backend_optimization_level=0 --xla_cpu_experimental_ynn_fusion_type=reduce"
     monkeypatch.setenv("XLA_FLAGS", mine)
     assert not xla_flags.apply_cpu_defaults() and os.environ["XLA_FLAGS"] == mine
@@ -54,6 +60,9 @@ def test_train_compiler_options_give_dot_fusions_to_small_grids_only(monkeypatch
     monkeypatch.setattr(xla_flags, "_applied", True)
     assert xla_flags.train_compiler_options((100, 100)) == xla_flags.DOT_FUSIONS
     assert xla_flags.train_compiler_options((500, 500)) == {}
+    # Up to 128 x 128 cells (docs/BENCHMARKS.md, "YNNPACK fusion types"), no more.
+    assert xla_flags.train_compiler_options((128, 128)) == xla_flags.DOT_FUSIONS
+    assert xla_flags.train_compiler_options((128, 129)) == {}
     monkeypatch.setattr(xla_flags, "_applied", False)  # the user's flags or another jaxlib
     assert xla_flags.train_compiler_options((100, 100)) == {}
 

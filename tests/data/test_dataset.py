@@ -273,6 +273,26 @@ def test_dataset_check_warns_of_off_grid_objects_and_empty_clouds(tmp_path, caps
     assert "000002.txt: a score column (16th field); ground truth has 15" in capsys.readouterr().out
 
 
+def test_dataset_check_lists_max_problems_and_no_false_orphans(tmp_path, capsys):
+    """``--max-problems N`` lists N warnings (docs/DATASET.md), and with ``--split`` the
+    clouds of frames outside the split are not "clouds without a label_2 file". A mutation
+    audit: listing N - 1 and that false warning under --split both passed."""
+    cloud = np.random.default_rng(0).uniform(-2.5, 2.5, (200, 4)).astype(np.float32)
+    for k in range(12):  # 11 empty clouds: 11 warnings; every frame has its labels
+        kitti.write_frame(tmp_path, f"{k:06d}", np.zeros((0, 4), np.float32) if k else cloud,
+                          kitti.ObjectLabels.empty(), CLASS_NAMES)  # fmt: skip
+    argv = ["dataset", "check", str(tmp_path), "--preset", "tiny"]
+    assert cli_main([*argv, "--max-problems", "3"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    start = lines.index("warnings: 11; the first 3:")
+    listed = [line.startswith("  ") for line in lines[start + 1 : start + 5]]
+    assert listed == [True, True, True, False]  # 3 listed, then the next part
+    kitti.write_split(tmp_path, "train", ["000000"])
+    assert cli_main([*argv, "--split", "train"]) == 0
+    out = capsys.readouterr().out
+    assert "no label_2 file" not in out and out.rstrip().endswith("no problems found")
+
+
 def test_dataset_commands_take_the_exports_config_and_set(tmp_path, capsys):
     """Without --preset, check and eval read the grid and classes from export.json; --set
     maps a class name; an empty split is a problem; files are world-readable as umask says."""

@@ -110,3 +110,33 @@ def test_the_console_module_loads_no_jax_before_main():
     probe = "import sys, indoorbev_sim.cli; print('jax' in sys.modules)"
     run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
     assert run.stdout.strip() == "False", run.stderr
+
+
+def test_check_and_publish_defaults_and_noise_free(monkeypatch):
+    """The defaults the docs give (docs/SIMULATOR.md: check's preset paper; docs/ROBOT.md:
+    publish's preset small, rate 10, seed 0, split test) and ``--noise-free``: no range noise
+    and no dropout. A mutation audit: check on small, publish drawing train scenes and
+    --noise-free keeping the dropout all passed."""
+    import indoorbev_sim.labels
+    import indoorbev_sim.ros2
+
+    seen = {}
+
+    def check(cfg, frames, batch, seed, split):
+        seen["check"] = cfg
+        return "ok"
+
+    def publish(cfg, rate, frames, topic, objects_topic, frame_id, seed, split, *args):
+        seen["publish"] = cfg, rate, seed, split
+
+    monkeypatch.setattr(indoorbev_sim.labels, "check", check)
+    monkeypatch.setattr(indoorbev_sim.ros2, "publish", publish)
+    assert main(["check", "--cache", ""]) == 0
+    assert seen["check"].name == "paper" and seen["check"].sim.dropout > 0
+    assert main(["ros2", "publish", "--cache", ""]) == 0
+    cfg, rate, seed, split = seen["publish"]
+    assert (cfg.name, rate, seed, split) == ("small", 10.0, 0, "test")
+    for argv in (["check"], ["ros2", "publish"]):
+        assert main([*argv, "--cache", "", "--noise-free"]) == 0
+        cfg = seen[argv[-1]] if argv == ["check"] else seen["publish"][0]
+        assert (cfg.sim.range_noise, cfg.sim.dropout) == (0.0, 0.0), argv

@@ -21,7 +21,7 @@ from indoorbev_sim import show
 from indoorbev_sim.cli import main
 
 from indoorbev_jax.cli import check_seed, check_whole
-from indoorbev_jax.config import Config
+from indoorbev_jax.config import CLASS_NAMES, Config
 from indoorbev_jax.data import kitti
 from indoorbev_jax.rosbag import BagError
 
@@ -164,6 +164,31 @@ def test_show_writes_pictures(exported, tmp_path):
         img = np.asarray(Image.open(path))
         assert img.shape[0] >= 600 and img.shape[2] == 3
         assert len(np.unique(img.reshape(-1, 3), axis=0)) > 10  # points, masks, boxes drawn
+
+
+def test_show_draws_every_frame_with_its_mask(tmp_path, monkeypatch):
+    """Without ids, show draws every frame ("all by default"), each with its mask_2 footprints
+    where it has one. A mutation audit: the first frame only and masks never drawn passed."""
+    drawn = {}
+    real = show.render_frame
+
+    def render(points, labels, mask, *args):
+        drawn[len(drawn)] = mask
+        return real(points, labels, mask, *args)
+
+    monkeypatch.setattr(show, "render_frame", render)
+    ids = np.zeros(CFG.grid.shape, np.int32)
+    ids[30:60, 30:70] = 1
+    empty = kitti.ObjectLabels.empty()
+    for k in range(3):  # a mask for frame 000001 only
+        mask = ids if k == 1 else None
+        kitti.write_frame(
+            tmp_path, f"{k:06d}", np.zeros((10, 4), np.float32), empty, CLASS_NAMES, mask
+        )
+    written = show.show(tmp_path, tmp_path / "pics", CFG)
+    assert [p.name for p in written] == ["000000.png", "000001.png", "000002.png"]
+    assert drawn[0] is None and drawn[2] is None
+    np.testing.assert_array_equal(drawn[1], ids)
 
 
 def test_show_never_leaves_a_half_written_picture(exported, tmp_path, monkeypatch):
