@@ -694,18 +694,19 @@ def test_predict_resumes_and_refuses_another_runs_outputs(model_file, tmp_path, 
     # A kill between frames: frame 1 lost its label, frame 2 its picture.
     (out / "label_2" / "000001.txt").unlink()
     (out / "pictures" / "000002.png").unlink()
-    # ... and a kill -9 inside atomic_write left its hidden temporary file: removed.
-    # A minute old: a second run's write in flight is not touched, nor a user's hidden file.
+    # ... and a kill -9 inside atomic_write left its hidden temporary file: removed, a
+    # minute old at the start; one killed 30 s before this run (kept then: it could be a
+    # write in flight) once the run is done, as export does. A user's hidden file stays.
     stale = out / "mask_2" / ".000001.png.x8k2j3_a.tmp"
     fresh = out / "label_2" / ".000001.txt.k3j4k5l6.tmp"
     keep = out / "label_2" / ".notes.tmp"
     for path in (stale, fresh, keep):
         path.write_bytes(b"\x89PNG")
     os.utime(stale, (time.time() - 120,) * 2)
+    os.utime(fresh, (time.time() - 30,) * 2)
     os.utime(keep, (time.time() - 120,) * 2)
     again = P.predict(model_file, data, out, verbose=False)
-    assert not stale.exists() and fresh.exists() and keep.exists()
-    fresh.unlink()
+    assert not stale.exists() and not fresh.exists() and keep.exists()
     keep.unlink()
     assert again["resumed_frames"] == 1 and again["objects"] == first["objects"]
     assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*.*")} == files

@@ -516,11 +516,12 @@ def model_fingerprint(config: Config, params: Any) -> str:
     return digest.hexdigest()
 
 
-def _remove_stale_temporaries(out: Path) -> None:
-    """What a kill -9 mid-write left of this run's outputs; no run reads it."""
+def _remove_stale_temporaries(out: Path, min_age: float = 60.0) -> None:
+    """What a kill -9 mid-write left of this run's outputs (``min_age`` seconds old); no
+    run reads it."""
     for d, ext in OUTPUT_DIRS.items():
-        kitti.remove_stale_temporaries(out / d, f"*{ext}")
-    kitti.remove_stale_temporaries(out, "predict.json")
+        kitti.remove_stale_temporaries(out / d, f"*{ext}", min_age)
+    kitti.remove_stale_temporaries(out, "predict.json", min_age)
 
 
 def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
@@ -659,6 +660,7 @@ def predict(
         run["mount"] = effect
     # A second run into this --out is refused while one runs: both wrote every frame.
     with kitti.hold_folder(out, "predict run", "--out"):
+        run_started = time.time()
         _prepare_out(out, run, overwrite)
         predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity, mount)
         grid = config.grid
@@ -778,6 +780,10 @@ def predict(
         else:
             for _ in run_frames():
                 pass
+        # A write killed less than a minute before this run outlived the clean-up at its
+        # start; one from before the run started is no write in flight now (the 1 s floor
+        # guards a run that was itself that short), as export does.
+        _remove_stale_temporaries(out, max(time.time() - run_started, 1.0))
         frames = summary["frames"]
         if frames == 0:
             bad = f" ({len(summary['bad_frames'])} unreadable)" if summary["bad_frames"] else ""
