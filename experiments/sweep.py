@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     add_distributed_arguments(p)
     args = p.parse_args(argv)
     try:
-        start_distributed(args)  # before anything touches a device (stack_hypers does)
+        start_distributed(args, "sweep.py")  # before anything touches a device
     except ValueError as e:
         p.error(str(e))
     config = config_from_args(args)
@@ -68,4 +68,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    exit_with(main, "sweep.py")  # Ctrl-C: one line and status 130
+    # Ctrl-C: one line and status 130; JAX_PLATFORMS checked after --distributed joins.
+    exit_with(main, "sweep.py", check_platforms=False)

@@ -966,3 +966,28 @@ def test_plot_curves_draws_every_quantity_a_training_log_holds(tmp_path, monkeyp
     assert dict(zip([t for _, _, t in plot.PANELS], drawn, strict=True)) == {
         "training loss": 3, "train dice loss (last layer)": 3, "val AP@0.25": 2,
         "val AP@0.50": 2, "val PQ": 2, "val mIoU": 2}  # fmt: skip
+
+
+def test_distributed_joins_before_the_platform_check_starts_the_backends(tmp_path):
+    """Under JAX_PLATFORMS other than cpu (cuda, tpu: a cluster's usual setting) the
+    command's platform check calls jax.devices(), after which JAX refuses to join a
+    multi-host run: --distributed always failed there ("must be called before any JAX
+    calls"). A one-process run on this CPU ("cpu,cpu" takes the same path) now joins and
+    goes on to read its data."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu,cpu"}
+    argv = ["--workdir", str(tmp_path / "w"), "--preset", "tiny", "--data", str(tmp_path / "no"),
+            "--distributed", "--coordinator-address", f"localhost:{port}",
+            "--num-processes", "1", "--process-id", "0"]  # fmt: skip
+    done = subprocess.run([sys.executable, str(REPO / "experiments" / "train.py"), *argv],
+                          env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert "must be called before" not in done.stderr
+    assert "train.py: error: " in done.stderr and f"{tmp_path / 'no'}" in done.stderr

@@ -116,6 +116,10 @@ def test_a_mount_away_from_the_trained_tilt_is_pointed_out():
     # The jitter tilts a level lidar in every direction: a mount's yaw is no tilt (a lidar
     # turned 90 deg about z was told it was 90 deg from the trained one).
     assert LidarMount(yaw=90.0).tilt_hint((0.0, 0.0, 0.0), 8.0) is None
+    # A lidar trained level but turned about z, without jitter, is a level one: 2 degrees
+    # of tolerance, and no jitter named (it was given a 1 degree band "as the jitter does").
+    assert LidarMount(pitch=1.5).tilt_hint((0.0, 0.0, 30.0)) is None
+    assert "trained on a level lidar" in LidarMount(pitch=5.0).tilt_hint((0.0, 0.0, 30.0))
     assert LidarMount(pitch=3.0, yaw=90.0).tilt_hint((0.0, 0.0, 0.0), 8.0) is None
     hint = LidarMount(pitch=20.0, yaw=90.0).tilt_hint((0.0, 0.0, 0.0), 8.0)
     assert "lidars tilted 0.0 to 8.0 deg (sim.sensor_rpy 0,0,0, sensor_tilt_jitter 8;" in hint

@@ -744,6 +744,7 @@ def test_predict_resumes_and_refuses_another_runs_outputs(model_file, tmp_path, 
         out / "label_2" / "000000.txt", CFG.data), CFG.data.class_names)  # fmt: skip
     with pytest.raises(ValueError, match=r"stale already holds 1 label, mask or picture files"):
         P.predict(model_file, data, stale, verbose=False)
+    assert not (stale / ".lock").exists()  # refused before the lock: nothing left in it
     with pytest.raises(ValueError, match=r"--out .*data is INPUT"):
         P.predict(model_file, data, data, verbose=False, overwrite=True)
     P.predict(model_file, data, stale, pictures=False, verbose=False, overwrite=True)

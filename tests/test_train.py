@@ -1001,6 +1001,12 @@ def test_sweep_logs_the_mean_loss_of_each_window(data, tmp_path, monkeypatch):
     assert [(r["step"], r["steps"]) for r in records] == [(3, 3), (6, 3), (7, 1)]
     for record, window in zip(records, windows, strict=True):
         np.testing.assert_allclose(record["loss"], [np.mean(window), 2 * np.mean(window)])
+    # The other hosts of a multi-host sweep leave the run's files to process 0.
+    monkeypatch.setattr(sweep, "writes_run_files", lambda: False)
+    other = tmp_path / "other_host"
+    sweep.run_sweep(cfg, other, stack_hypers(cfg, [1e-3, 2e-3], {}), data, progress=False)
+    for name in ("config.json", "run.json", "hypers.json", "sweep.jsonl"):
+        assert not (other / name).exists(), name
 
 
 def test_prefetch_finishes_its_dispatched_work_when_the_consumer_stops():

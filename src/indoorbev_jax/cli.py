@@ -244,15 +244,18 @@ def add_distributed_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--process-id", type=nonnegative_int, help="this process's index")
 
 
-def start_distributed(args: argparse.Namespace) -> None:
-    """Joins a multi-host run when ``args.distributed`` (before anything touches a device);
-    a failure is a ValueError naming the flag, as is a host setting without the flag."""
+def start_distributed(args: argparse.Namespace, prog: str) -> None:
+    """Joins a multi-host run when ``args.distributed``, then checks ``JAX_PLATFORMS`` as
+    ``exit_with`` does for other commands (the check starts the backends, after which JAX
+    refuses to join: their scripts call ``exit_with(..., check_platforms=False)``). A
+    failed join is a ValueError naming the flag, as is a host setting without the flag."""
     given = [f for f in ("coordinator_address", "num_processes", "process_id")
              if getattr(args, f) is not None]  # fmt: skip
     if not args.distributed:
         if given:
             flags = ", ".join("--" + f.replace("_", "-") for f in given)
             raise ValueError(f"{flags}: only with --distributed (a multi-host run)")
+        _check_jax_platforms(prog)
         return
     import jax
 
@@ -267,6 +270,7 @@ def start_distributed(args: argparse.Namespace) -> None:
             f"--distributed: jax.distributed.initialize() failed ({e}); outside SLURM, Open "
             "MPI and Cloud TPU, give --coordinator-address, --num-processes and --process-id"
         ) from e
+    _check_jax_platforms(prog)
 
 
 def join_negative_values(argv: list[str] | None, flags=("--lidar-rpy",)) -> list[str]:
@@ -733,8 +737,10 @@ def _check_jax_platforms(prog: str) -> None:
         sys.exit(2)
 
 
-def exit_with(main_fn, prog: str):
-    """Runs a console command's ``main`` and exits with its status.
+def exit_with(main_fn, prog: str, check_platforms: bool = True):
+    """Runs a console command's ``main`` and exits with its status; ``check_platforms``:
+    check ``JAX_PLATFORMS`` first (a command that may join a multi-host run checks it
+    after joining, in ``start_distributed``).
 
     Ctrl-C exits with 130 and one line instead of a traceback, and leaves at once: XLA may
     still be compiling on its own threads, and a normal interpreter shutdown under them
@@ -744,7 +750,8 @@ def exit_with(main_fn, prog: str):
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not if ignored
         signal.signal(signal.SIGINT, _remember_sigint)
         sys.unraisablehook = _quiet_dropped_interrupts(sys.unraisablehook)
-    _check_jax_platforms(prog)
+    if check_platforms:
+        _check_jax_platforms(prog)
     try:
         status = main_fn()
     except KeyboardInterrupt:

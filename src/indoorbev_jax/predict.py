@@ -524,10 +524,11 @@ def _remove_stale_temporaries(out: Path, min_age: float = 60.0) -> None:
     kitti.remove_stale_temporaries(out, "predict.json", min_age)
 
 
-def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
+def _prepare_out(out: Path, run: dict, overwrite: bool, check_only: bool = False) -> None:
     """Checks that ``out`` holds nothing but this run's outputs (then they are resumed), or
     clears the earlier outputs when ``overwrite``; writes ``predict.json``. A
-    ``predict.json`` without outputs (a run stopped before its first frame) is replaced."""
+    ``predict.json`` without outputs (a run stopped before its first frame) is replaced.
+    ``check_only``: the refusals alone, writing nothing (before the lock is taken)."""
     manifest = out / "predict.json"
     ours = [p for d, ext in OUTPUT_DIRS.items() for p in (out / d).glob(f"*{ext}")]
     if manifest.exists():
@@ -540,7 +541,8 @@ def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
         if "model" in saved:
             saved.setdefault("boxes", "head")  # runs before the entry wrote the head's boxes
         if saved == run:
-            _remove_stale_temporaries(out)
+            if not check_only:
+                _remove_stale_temporaries(out)
             return
         # A run stopped before its first frame (Ctrl-C while compiling) left only its
         # predict.json: nothing to mix, so another run's settings may take the folder.
@@ -557,6 +559,8 @@ def _prepare_out(out: Path, run: dict, overwrite: bool) -> None:
             f"{out} already holds {len(ours)} label, mask or picture files that no predict run "
             f"wrote (no predict.json); pass --overwrite to replace them, or choose another --out"
         )
+    if check_only:
+        return
     if overwrite:
         for path in ours:
             path.unlink()
@@ -658,7 +662,10 @@ def predict(
     }
     if effect := mount.effect(config.sim.sensor_height):  # none: as older runs read clouds
         run["mount"] = effect
-    # A second run into this --out is refused while one runs: both wrote every frame.
+    # A second run into this --out is refused while one runs: both wrote every frame. A
+    # folder refused as another's outputs is refused before the lock leaves a file in it
+    # (and checked again under the lock, which another run may have held meanwhile).
+    _prepare_out(out, run, overwrite, check_only=True)
     with kitti.hold_folder(out, "predict run", "--out"):
         run_started = time.time()
         _prepare_out(out, run, overwrite)

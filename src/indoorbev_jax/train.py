@@ -947,7 +947,7 @@ def holds_workdir(run_fn):
     @functools.wraps(run_fn)
     def run(config, workdir, *args, **kwargs):
         workdir = Path(workdir)
-        with kitti.hold_folder(workdir, "run", "workdir", take=jax.process_index() == 0):
+        with kitti.hold_folder(workdir, "run", "workdir", take=writes_run_files()):
             return run_fn(config, workdir, *args, **kwargs)
 
     return run

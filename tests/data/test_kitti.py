@@ -490,3 +490,44 @@ def test_a_mid360_scan_with_three_or_five_columns_is_refused(tmp_path, half, cei
         points.astype(np.float32).tofile(tmp_path / f"{name}.bin")
         with pytest.raises(kitti.DatasetError, match=rf"{name}\.bin: looks like {cols} float32"):
             kitti.read_points(tmp_path / f"{name}.bin")
+
+
+def test_hold_folder_names_the_holder_and_what_stands_in_its_way(tmp_path, monkeypatch):
+    """The lock names the job holding it (a predict into an export's folder was told "in
+    use by another predict run"), an --out under a file says so (a bare "File exists"
+    before), and a read-only folder, where no run can write, is not locked (a finished
+    predict output on read-only media stopped at opening its .lock)."""
+    import errno
+    import fcntl
+
+    held = tmp_path / "held"
+    with kitti.hold_folder(held, "export", "--out"):
+        assert (held / ".lock").read_text() == f"export, pid {os.getpid()}\n"
+        said = rf"held: in use by another export \(pid {os.getpid()}\); wait .* another --out"
+        with pytest.raises(ValueError, match=said):
+            with kitti.hold_folder(held, "predict run", "--out"):
+                pass
+    with open(held / ".lock", "w") as old:  # a lock of an older version: the pid alone
+        fcntl.flock(old, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        old.write("pid 4242\n")
+        old.flush()
+        with pytest.raises(ValueError, match=r"in use by another run \(pid 4242\)"):
+            with kitti.hold_folder(held, "run", "workdir"):
+                pass
+    (tmp_path / "afile").write_text("x")
+    for out in (tmp_path / "afile", tmp_path / "afile" / "sub"):
+        with pytest.raises(OSError, match=r"cannot write in .*: .*afile is a file, not a folder"):
+            with kitti.hold_folder(out, "predict run", "--out"):
+                pass
+    real_open = open
+
+    def read_only(path, *args, **kwargs):
+        if str(path).endswith(".lock"):
+            raise OSError(errno.EROFS, "Read-only file system")
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(kitti, "open", read_only, raising=False)
+    ran = []
+    with kitti.hold_folder(held, "predict run", "--out"):
+        ran.append(True)
+    assert ran == [True]

@@ -356,7 +356,7 @@ def test_an_export_running_in_the_folder_refuses_a_second(exported, tmp_path):
             export_mod.export(copy, FRAMES, SEED, CFG, progress=False)
         assert _tree(copy) == before
     export_mod.export(copy, FRAMES, SEED, CFG, progress=False)  # once it has ended
-    assert (copy / ".lock").read_text() == f"pid {os.getpid()}\n"
+    assert (copy / ".lock").read_text() == f"export, pid {os.getpid()}\n"
 
 
 def test_bad_options_fail_before_any_frame(cache, tmp_path):

@@ -185,24 +185,39 @@ def remove_stale_temporaries(folder: Path, names: str, min_age: float = 60.0) ->
 
 @contextlib.contextmanager
 def hold_folder(folder: str | os.PathLike, job: str, place: str, take: bool = True):
-    """Holds an exclusive ``flock`` on ``folder/.lock`` (its content: the pid) while the
-    block runs, so that a second ``job`` started on the same folder is refused, naming the
-    first: two runs writing one folder both ran to the end before. The lock goes with its
-    process, a kill -9 included; a left-over file means nothing. A filesystem without
-    ``flock`` gets a warning and no lock; ``take=False`` takes none (the other processes
-    of a multi-host run, which share the folder). ``folder`` is made if missing.
+    """Holds an exclusive ``flock`` on ``folder/.lock`` (its content: ``job`` and the pid)
+    while the block runs, so that a second job started on the same folder is refused,
+    naming the first: two runs writing one folder both ran to the end before. The lock
+    goes with its process, a kill -9 included; a left-over file means nothing. A
+    filesystem without ``flock`` gets a warning and no lock, a read-only folder no lock;
+    ``take=False`` takes none (the other processes of a multi-host run, which share the
+    folder). ``folder`` is made if missing.
 
     Raises:
-      ValueError: another process holds the lock; the message names it (its pid) and
+      ValueError: another process holds the lock; the message names its job and pid and
         suggests another ``place`` (say "workdir" or "--out").
+      OSError: ``folder`` cannot be made (named, with the file in its way if there is one).
     """
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    with open(folder / ".lock", "a+") as lock:
+    folder, lock = Path(folder), None
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        lock = open(folder / ".lock", "a+")  # noqa: SIM115 (closed below, after the yield)
+    except OSError as e:
+        # Read-only: no run can write here, so there is nothing to lock (a finished
+        # predict output on read-only media is still read back and summed up).
+        if not (e.errno in (errno.EROFS, errno.EACCES) and folder.is_dir()):
+            reason = e.strerror or str(e)
+            if (blocker := file_in_path(folder)) is not None:
+                reason = f"{blocker} is a file, not a folder"
+            raise OSError(e.errno, f"cannot write in {folder}: {reason}") from e
+    if lock is None:
+        yield
+        return
+    with lock:
         if take and _take_lock(lock, folder, job, place):
             lock.seek(0)
             lock.truncate()
-            lock.write(f"pid {os.getpid()}\n")
+            lock.write(f"{job}, pid {os.getpid()}\n")
             lock.flush()
         yield
 
@@ -214,9 +229,12 @@ def _take_lock(lock, folder: Path, job: str, place: str) -> bool:
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         lock.seek(0)
-        holder = lock.read().strip() or "another process"
+        # "export, pid 123"; a lock of an older version holds "pid 123" alone.
+        holder, sep, pid = lock.read().strip().rpartition(", ")
+        if not sep:
+            holder, pid = job, pid or "another process"
         raise ValueError(
-            f"{folder}: in use by another {job} ({holder}); wait for it to end, or use "
+            f"{folder}: in use by another {holder} ({pid}); wait for it to end, or use "
             f"another {place}"
         ) from None
     except OSError as e:  # a filesystem without flock (Lustre without -o flock)
