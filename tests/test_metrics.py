@@ -845,6 +845,10 @@ def test_eval_cli_matches_metric_functions(tmp_path, capsys):
     printed = capsys.readouterr().err  # errors go to stderr, past `> metrics.txt`
     assert "1 of 3 frames have no prediction label file, e.g. " in printed
     assert "pred/label_2/c.txt (write an empty file" in printed
+    # A folder in its place is said to be one (it read as a file simply missing).
+    (tmp_path / "pred/label_2/c.txt").mkdir()
+    assert main([*argv, "--preset", "tiny"]) == 1
+    assert "pred/label_2/c.txt (a folder or other non-file there)" in capsys.readouterr().err
 
 
 def test_eval_cli_says_which_objects_have_no_cell(tmp_path, capsys):

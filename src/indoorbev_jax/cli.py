@@ -480,8 +480,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-problems",
         type=positive_int,
         default=10,
-        help="list at most this many warnings and this many problems; their counts are "
-        "printed in full",
+        help="list at most this many warnings and this many problems (default 10); their "
+        "counts are printed in full",
     )
     add_dataset_config_arguments(check)
     check.set_defaults(func=dataset_check)

@@ -106,10 +106,13 @@ def folder_evaluator(
     for side, root in (("ground-truth", gt_root), ("prediction", pred_root)):
         missing = [i for i in ids if not kitti.frame_paths(root, i)["labels"].is_file()]
         if missing:
+            first = kitti.frame_paths(root, missing[0])["labels"]
             hint = " (write an empty file for a frame with no detections)" * (root == pred_root)
+            if first.exists():  # a folder (or a pipe) where the file should be
+                hint = " (a folder or other non-file there)"
             raise kitti.DatasetError(
                 f"{where}: {len(missing)} of {len(ids)} frames have no {side} label file, "
-                f"e.g. {kitti.frame_paths(root, missing[0])['labels']}{hint}"
+                f"e.g. {first}{hint}"
             )
     k = config.num_classes
     evaluator = Evaluator(config.inference, class_names=config.data.class_names)

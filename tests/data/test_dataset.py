@@ -287,6 +287,11 @@ def test_dataset_check_lists_max_problems_and_no_false_orphans(tmp_path, capsys)
     start = lines.index("warnings: 11; the first 3:")
     listed = [line.startswith("  ") for line in lines[start + 1 : start + 5]]
     assert listed == [True, True, True, False]  # 3 listed, then the next part
+    assert cli_main(argv) == 0  # the documented default: 10 of the 11
+    lines = capsys.readouterr().out.splitlines()
+    start = lines.index("warnings: 11; the first 10:")
+    listed = [line.startswith("  ") for line in lines[start + 1 : start + 12]]
+    assert listed == [True] * 10 + [False]
     kitti.write_split(tmp_path, "train", ["000000"])
     assert cli_main([*argv, "--split", "train"]) == 0
     out = capsys.readouterr().out
