@@ -251,25 +251,24 @@ def start_distributed(args: argparse.Namespace, prog: str) -> None:
     failed join is a ValueError naming the flag, as is a host setting without the flag."""
     given = [f for f in ("coordinator_address", "num_processes", "process_id")
              if getattr(args, f) is not None]  # fmt: skip
-    if not args.distributed:
-        if given:
-            flags = ", ".join("--" + f.replace("_", "-") for f in given)
-            raise ValueError(f"{flags}: only with --distributed (a multi-host run)")
-        _check_jax_platforms(prog)
-        return
-    import jax
+    if args.distributed:
+        import jax
 
-    try:
-        jax.distributed.initialize(
-            coordinator_address=args.coordinator_address,
-            num_processes=args.num_processes,
-            process_id=args.process_id,
-        )
-    except (ValueError, RuntimeError) as e:
-        raise ValueError(
-            f"--distributed: jax.distributed.initialize() failed ({e}); outside SLURM, Open "
-            "MPI and Cloud TPU, give --coordinator-address, --num-processes and --process-id"
-        ) from e
+        try:
+            jax.distributed.initialize(
+                coordinator_address=args.coordinator_address,
+                num_processes=args.num_processes,
+                process_id=args.process_id,
+            )
+        except (ValueError, RuntimeError) as e:
+            raise ValueError(
+                f"--distributed: jax.distributed.initialize() failed ({e}); outside SLURM, "
+                "Open MPI and Cloud TPU, give --coordinator-address, --num-processes and "
+                "--process-id"
+            ) from e
+    elif given:
+        flags = ", ".join("--" + f.replace("_", "-") for f in given)
+        raise ValueError(f"{flags}: only with --distributed (a multi-host run)")
     _check_jax_platforms(prog)
 
 

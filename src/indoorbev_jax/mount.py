@@ -156,7 +156,8 @@ class LidarMount:
         (``augment.rotation`` pi), which turns the direction a tilt faces as well, so only
         the size of the tilt counts (a roll of 10 is a pitch of 10 turned by 90 degrees)."""
         trained = LidarMount(*trained_rpy)
-        if trained.tilt() < 1e-9 and not trained_jitter:  # level, maybe turned about z
+        level = trained.tilt() < 1e-9  # maybe turned about z: yaw leaves a level lidar level
+        if level and not trained_jitter:
             # Yaw leaves a level lidar level: only the tilt of its z axis counts.
             tilt = self.tilt()
             if tilt <= LEVEL_TOLERANCE:
@@ -169,8 +170,7 @@ class LidarMount:
             )
         # The jitter tilts a level lidar in every direction (a disc of tilt directions), so
         # there too only the size of the tilt counts, not the mount's yaw.
-        jittered_level = trained.tilt() < 1e-9 and trained_jitter > 0
-        if every_direction or jittered_level:
+        if every_direction or level:
             margin = max(1.0, trained_jitter)
             low, high = max(0.0, trained.tilt() - margin), trained.tilt() + margin
             if low - 1e-6 <= self.tilt() <= high + 1e-6:  # acos rounding at the ends
