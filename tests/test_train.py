@@ -21,6 +21,7 @@ import numpy as np
 import optax
 import pytest
 
+from indoorbev_jax import rundir, sources
 from indoorbev_jax import train as T
 from indoorbev_jax.config import Config, with_overrides
 from indoorbev_jax.data import kitti
@@ -192,7 +193,7 @@ def test_run_with_ema_checkpoints_and_exports_the_average(tmp_path):
         s._replace(ema=shifted) if isinstance(s, T.ParamsEmaState) else s for s in state.opt_state
     )
     (tmp_path / "config.json").write_text(cfg.to_json())
-    ckpt = T.Checkpoints(tmp_path, cfg.train.keep_checkpoints)
+    ckpt = rundir.Checkpoints(tmp_path, cfg.train.keep_checkpoints)
     ckpt.save(state.replace(step=jnp.int32(5), opt_state=opt_state))
     ckpt.close()
     config, params = T.load_params(tmp_path, which="latest")
@@ -210,7 +211,7 @@ def test_corrupt_latest_checkpoint_falls_back_and_is_written_anew(tmp_path, capl
     state = T.TrainState(
         step=jnp.int32(0), params={"w": jnp.arange(4.0)}, opt_state=(), skipped=jnp.int32(0)
     )
-    ckpt = T.Checkpoints(tmp_path, keep=3)
+    ckpt = rundir.Checkpoints(tmp_path, keep=3)
     for step in (1, 2):
         ckpt.save(state.replace(step=jnp.int32(step), params={"w": jnp.arange(4.0) * step}))
     ckpt.close()
@@ -222,7 +223,7 @@ def test_corrupt_latest_checkpoint_falls_back_and_is_written_anew(tmp_path, capl
         for f in bad.rglob("*"):
             if f.is_file():
                 f.write_bytes(b"garbage")
-    ckpt = T.Checkpoints(tmp_path, keep=3)
+    ckpt = rundir.Checkpoints(tmp_path, keep=3)
     with caplog.at_level("WARNING"):
         restored = ckpt.restore(state)
     assert restored is not None and int(restored.step) == 1
@@ -230,7 +231,7 @@ def test_corrupt_latest_checkpoint_falls_back_and_is_written_anew(tmp_path, capl
     assert "checkpoint 2 is unreadable" in caplog.text
     ckpt.save(state.replace(step=jnp.int32(2), params={"w": jnp.arange(4.0) * 7}))
     ckpt.close()
-    again = T.Checkpoints(tmp_path, keep=3).restore(state)
+    again = rundir.Checkpoints(tmp_path, keep=3).restore(state)
     assert int(again.step) == 2
     np.testing.assert_array_equal(again.params["w"], np.arange(4.0) * 7)
 
@@ -321,8 +322,8 @@ def test_kill_and_rerun_resumes_bitwise(data, tmp_path):
     assert record["sha256"] == hashlib.sha256(Path(pretrained).read_bytes()).hexdigest()
 
     template = T.init_state(CFG, jax.random.key(0))
-    a = T.Checkpoints(full, 2).restore(template)
-    b = T.Checkpoints(killed, 2).restore(template)
+    a = rundir.Checkpoints(full, 2).restore(template)
+    b = rundir.Checkpoints(killed, 2).restore(template)
     assert int(a.step) == int(b.step) == 6
     jax.tree.map(np.testing.assert_array_equal, a.params, b.params)
     jax.tree.map(np.testing.assert_array_equal, a.opt_state, b.opt_state)
@@ -400,12 +401,12 @@ def test_a_malformed_training_frame_is_named_and_skipped_when_asked(data, tmp_pa
     ids = kitti.read_split(own, "train")
     bad = own / "velodyne" / f"{ids[0]}.bin"
     bad.write_bytes(bad.read_bytes()[:100])
-    strict = T.KittiSource(own, "train", CFG, seed=0)
+    strict = sources.KittiSource(own, "train", CFG, seed=0)
     per_epoch = len(ids) // CFG.train.batch_size
     with pytest.raises(kitti.DatasetError, match=rf"{ids[0]}\.bin"):
         for step in range(per_epoch):
             strict(step)
-    lenient = T.KittiSource(own, "train", CFG, seed=0, skip_bad=True)
+    lenient = sources.KittiSource(own, "train", CFG, seed=0, skip_bad=True)
     with caplog.at_level("WARNING"):
         batches = [lenient(step) for step in range(per_epoch)]
     assert f"skipping malformed frame {ids[0]}" in caplog.text
@@ -418,7 +419,7 @@ def test_a_malformed_training_frame_is_named_and_skipped_when_asked(data, tmp_pa
         path = own / "velodyne" / f"{frame_id}.bin"
         path.write_bytes(path.read_bytes()[:100])
     with pytest.raises(kitti.DatasetError, match="no readable frame left"):
-        T.KittiSource(own, "train", CFG, seed=0, skip_bad=True)(0)
+        sources.KittiSource(own, "train", CFG, seed=0, skip_bad=True)(0)
 
 
 def test_kitti_source_reshuffles_every_epoch_and_with_the_seed(data):
@@ -433,7 +434,7 @@ def test_kitti_source_reshuffles_every_epoch_and_with_the_seed(data):
     per_epoch = len(dataset) // CFG.train.batch_size
 
     def read(seed, epoch):
-        source = T.KittiSource(data, "train", CFG, seed=seed)
+        source = sources.KittiSource(data, "train", CFG, seed=seed)
         order = []
         for step in range(epoch * per_epoch, (epoch + 1) * per_epoch):
             order += [index[p.tobytes()] for p in np.asarray(source(step).points)]
@@ -464,8 +465,8 @@ def test_a_frame_with_more_objects_than_max_objects_is_named(data, tmp_path, cap
     )
     message = rf"{crowded}\.txt: {counts[crowded]} objects, more than data\.max_objects="
     with pytest.raises(kitti.DatasetError, match=message + str(counts[crowded] - 1)):
-        T.KittiSource(own, "train", cfg, seed=0)
-    lenient = T.KittiSource(own, "train", cfg, seed=0, skip_bad=True)
+        sources.KittiSource(own, "train", cfg, seed=0)
+    lenient = sources.KittiSource(own, "train", cfg, seed=0, skip_bad=True)
     with caplog.at_level("WARNING"):
         for step in range(len(ids) // cfg.train.batch_size):
             lenient(step)
@@ -475,7 +476,7 @@ def test_a_frame_with_more_objects_than_max_objects_is_named(data, tmp_path, cap
 def test_a_nan_validation_score_never_replaces_a_better_best(tmp_path):
     """PQ is NaN on a validation split without objects when nothing is predicted: as a
     number it took best/ from a step with PQ 0.3 for good."""
-    ckpt = T.Checkpoints(tmp_path, keep=2)
+    ckpt = rundir.Checkpoints(tmp_path, keep=2)
 
     def state(step):
         return T.TrainState(step=jnp.int32(step), params={"w": jnp.float32(step)}, opt_state=(),
@@ -618,19 +619,19 @@ def test_metrics_log_drops_a_torn_last_line_only(tmp_path, caplog):
     good = ['{"step": 5, "kind": "train", "loss": 2.0}', '{"step": 10, "kind": "train"}']
     path.write_text("\n".join(good) + '\n\n{"step": 15, "kind": "tr')  # killed mid-write
     with caplog.at_level("WARNING"):
-        T.MetricsLog(tmp_path, resume_step=10).close()
+        rundir.MetricsLog(tmp_path, resume_step=10).close()
     assert path.read_text() == "".join(line + "\n" for line in good)
     assert f"{path}: line 4 is cut off" in caplog.text
     assert not list(tmp_path.glob("*.tmp"))  # rewritten through a temporary file
     # The resumed run appends to the repaired log.
-    log = T.MetricsLog(tmp_path, resume_step=10)
+    log = rundir.MetricsLog(tmp_path, resume_step=10)
     log.write(15, "train", {"loss": 1.0})
     log.close()
     assert [json.loads(line)["step"] for line in path.read_text().splitlines()] == [5, 10, 15]
     # A bad line with lines after it is corruption, not a torn write.
     path.write_text(good[0] + '\n{"step": 7, "ki\n' + good[1] + "\n")
     with pytest.raises(ValueError, match=f"{re.escape(str(path))}: line 2 is not a JSON object"):
-        T.MetricsLog(tmp_path, resume_step=10)
+        rundir.MetricsLog(tmp_path, resume_step=10)
 
 
 def test_refused_start_leaves_no_config_json(data, tmp_path, quick_start):
@@ -688,7 +689,7 @@ def test_resume_refuses_another_data_source(data, tmp_path, quick_start, monkeyp
     with pytest.raises(_Stop):
         T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
     folder = str(Path(data).resolve())
-    assert json.loads((workdir / "run.json").read_text()) == T.run_record(folder)
+    assert json.loads((workdir / "run.json").read_text()) == rundir.run_record(folder)
     with pytest.raises(ValueError) as refused:
         T.train_and_evaluate(CFG, workdir, data=None, progress=False)
     assert str(refused.value) == (
@@ -737,7 +738,7 @@ def test_resume_names_changed_fields_and_allows_schedule_only_ones(
             t, eval_every=5, log_every=1, checkpoint_every=2, keep_checkpoints=4
         ),
     )
-    with caplog.at_level("INFO", logger="indoorbev_jax.train"), pytest.raises(_Stop):
+    with caplog.at_level("INFO", logger="indoorbev_jax.rundir"), pytest.raises(_Stop):
         T.train_and_evaluate(sched, tmp_path, data=str(data), progress=False)
     for line in ("train.eval_every: 10 -> 5", "train.log_every: 5 -> 1",
                  "train.checkpoint_every: 5 -> 2", "train.keep_checkpoints: 2 -> 4"):  # fmt: skip
@@ -797,7 +798,7 @@ def test_each_use_of_the_run_key_has_its_own_stream(tmp_path, quick_start, monke
 def test_box_targets_are_the_rasterised_labelled_boxes(batch):
     from indoorbev_jax.data.rasterize import rasterize_boxes
 
-    boxed = T.box_targets(batch, CFG.grid).targets
+    boxed = sources.box_targets(batch, CFG.grid).targets
     t = batch.targets
     for b in range(t.valid.shape[0]):
         boxes = np.concatenate(
@@ -815,7 +816,7 @@ def test_box_targets_are_the_rasterised_labelled_boxes(batch):
 
 
 def test_gt_database_holds_every_valid_object_of_its_batches(batch):
-    db = T.gt_database(lambda i: batch, 2, CFG.grid)
+    db = sources.gt_database(lambda i: batch, 2, CFG.grid)
     n = int(np.asarray(batch.targets.valid).sum())
     assert db.classes.shape == (2 * n,)
     want = np.asarray(batch.targets.classes)[np.asarray(batch.targets.valid)]
@@ -828,7 +829,7 @@ def test_box_mask_targets_apply_to_training_batches_of_any_source(data):
     boxed_cfg = dataclasses.replace(CFG, data=dataclasses.replace(CFG.data, mask_targets="box"))
     train, val = T.make_sources(boxed_cfg, str(data), 0, False)
     shaped, shaped_val = T.make_sources(CFG, str(data), 0, False)
-    want = T.box_targets(shaped(0), CFG.grid).targets
+    want = sources.box_targets(shaped(0), CFG.grid).targets
     got = train(0).targets
     np.testing.assert_array_equal(got.masks, want.masks)
     np.testing.assert_array_equal(got.instance_ids, want.instance_ids)
@@ -1023,7 +1024,7 @@ def test_prefetch_finishes_its_dispatched_work_when_the_consumer_stops():
         return made[-1]
 
     before = set(threading.enumerate())
-    steps = T.prefetch(source, 0, 100, size=2)
+    steps = sources.prefetch(source, 0, 100, size=2)
     assert [next(steps)[0] for _ in range(3)] == [0, 1, 2]
     time.sleep(0.3)  # the worker fills the queue and waits to put the next batch
     steps.close()
@@ -1048,7 +1049,7 @@ def test_box_targets_are_the_augmented_boxes_rasterised(data):
     from indoorbev_jax.data.rasterize import rasterize_boxes
 
     config = with_overrides(CFG, ["data.mask_targets=box"])
-    batch = T.box_targets(next(KittiDataset(data, "train", config).batches(2)), config.grid)
+    batch = sources.box_targets(next(KittiDataset(data, "train", config).batches(2)), config.grid)
     key = jax.random.key(3)
     out = T.training_batch(config, batch, key)
     t = out.targets
@@ -1064,7 +1065,7 @@ def test_an_empty_object_database_is_named(data):
     batch = next(KittiDataset(data, "train", CFG).batches(2))
     empty = batch.replace(targets=batch.targets.replace(valid=batch.targets.valid & False))
     with pytest.raises(ValueError, match="augment.gt_sampling: the first 2 training batches"):
-        T.gt_database(lambda i: empty, 2, CFG.grid)
+        sources.gt_database(lambda i: empty, 2, CFG.grid)
 
 
 def test_sweep_window_means_leave_out_skipped_steps(data, tmp_path, monkeypatch):
@@ -1149,7 +1150,7 @@ def test_train_and_sweep_refuse_each_others_workdir(data, tmp_path):
     with pytest.raises(ValueError, match=r"sweep: holds a sweep \(it has hypers\.json\); train in"):
         T.train_and_evaluate(CFG, swept, data=str(data), progress=False)
     trained.mkdir()
-    (trained / "run.json").write_text(json.dumps(T.run_record(None)) + "\n")
+    (trained / "run.json").write_text(json.dumps(rundir.run_record(None)) + "\n")
     hypers = stack_hypers(CFG, [1e-3], {})
     with pytest.raises(ValueError, match=r"holds a training run \(run\.json says 'train'\); sweep"):
         sweep.run_sweep(CFG, trained, hypers, None, progress=False)
@@ -1162,10 +1163,10 @@ def test_a_checkpoint_of_another_layout_is_refused_not_deleted(tmp_path):
         step=jnp.int32(0), params={"w": jnp.arange(4.0)}, opt_state=(), skipped=jnp.int32(0)
     )
     stacked = jax.tree.map(lambda x: jnp.stack([x, x]), one)
-    ckpt = T.Checkpoints(tmp_path, keep=3, metric=None)
+    ckpt = rundir.Checkpoints(tmp_path, keep=3, metric=None)
     ckpt.save(stacked, 2)
     ckpt.close()
-    ckpt = T.Checkpoints(tmp_path, keep=3, metric=None)
+    ckpt = rundir.Checkpoints(tmp_path, keep=3, metric=None)
     with pytest.raises(ValueError, match=r"checkpoints/2: holds 3 arrays, this run's state has 3"):
         ckpt.restore(one)
     assert ckpt.latest.all_steps() == [2] and int(ckpt.restore(stacked).step[0]) == 0
@@ -1185,12 +1186,12 @@ def test_load_params_refuses_a_sweep_workdir_and_leaves_it_resumable(tmp_path):
     """load_params (predict, export, --init-from) made best/ in a sweep's workdir, which
     then counted as a training run's and refused every resume of the sweep."""
     (tmp_path / "config.json").write_text(CFG.to_json())
-    (tmp_path / "run.json").write_text(json.dumps(T.run_record(None, "sweep")) + "\n")
+    (tmp_path / "run.json").write_text(json.dumps(rundir.run_record(None, "sweep")) + "\n")
     with pytest.raises(ValueError, match=r"a sweep's workdir: its checkpoints hold K stacked"):
         T.load_params(tmp_path)
     assert not (tmp_path / "best").exists()
     (tmp_path / "best").mkdir()  # as those versions left it: run.json's kind decides
-    T.check_run_kind(tmp_path, "sweep")
+    rundir.check_run_kind(tmp_path, "sweep")
 
 
 def test_a_sweep_resumes_after_val_txt_changes(data, tmp_path):
@@ -1199,23 +1200,25 @@ def test_a_sweep_resumes_after_val_txt_changes(data, tmp_path):
     import shutil
 
     folder = Path(shutil.copytree(data, tmp_path / "data")).resolve()
-    record = T.run_record(str(folder), "sweep")
+    record = rundir.run_record(str(folder), "sweep")
     assert record["kind"] == "sweep" and list(record["splits"]) == ["train.txt"]
     workdir = tmp_path / "sweep"
     (workdir / "checkpoints" / "3").mkdir(parents=True)  # as if step 3 were saved
     (workdir / "config.json").write_text(CFG.to_json())
     (workdir / "run.json").write_text(json.dumps(record) + "\n")
     (folder / "val.txt").write_text("000000\n")
-    T.check_resume(workdir / "config.json", workdir / "run.json", CFG, str(folder), "sweep")
+    rundir.check_resume(workdir / "config.json", workdir / "run.json", CFG, str(folder), "sweep")
     (folder / "train.txt").write_text("000001\n")
     with pytest.raises(ValueError, match=r"train\.txt changed .* or sweep in another workdir$"):
-        T.check_resume(workdir / "config.json", workdir / "run.json", CFG, str(folder), "sweep")
+        rundir.check_resume(
+            workdir / "config.json", workdir / "run.json", CFG, str(folder), "sweep"
+        )
 
 
 def test_a_malformed_run_json_is_named_not_taken_for_a_sweep(tmp_path):
     (tmp_path / "config.json").write_text(CFG.to_json())
     (tmp_path / "run.json").write_text('{"kind": "tr')  # cut off
-    for call in (lambda: T.load_params(tmp_path), lambda: T.check_run_kind(tmp_path, "train")):
+    for call in (lambda: T.load_params(tmp_path), lambda: rundir.check_run_kind(tmp_path, "train")):
         with pytest.raises(ValueError, match=r"run\.json: not valid JSON"):
             call()
 

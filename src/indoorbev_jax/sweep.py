@@ -22,28 +22,28 @@ from tqdm import tqdm
 
 from indoorbev_jax.augment import ObjectDatabase
 from indoorbev_jax.config import Config, check_train_seed
-from indoorbev_jax.train import (
-    GT_DATABASE_BATCHES,
-    KEY_INIT,
-    KEY_STEPS,
+from indoorbev_jax.rundir import (
     Checkpoints,
-    Hyper,
-    TrainState,
     check_resume,
     check_run_kind,
-    eval_params,
-    gt_database,
     holds_workdir,
-    init_state,
-    jit_train_step,
-    make_sources,
-    make_train_step,
-    prefetch,
     read_json,
     run_record,
     truncate_log,
     write_text_atomic,
     writes_run_files,
+)
+from indoorbev_jax.sources import GT_DATABASE_BATCHES, gt_database, prefetch
+from indoorbev_jax.train import (
+    KEY_INIT,
+    KEY_STEPS,
+    Hyper,
+    TrainState,
+    eval_params,
+    init_state,
+    jit_train_step,
+    make_sources,
+    make_train_step,
 )
 
 

@@ -4,7 +4,8 @@
 directory holds ``config.json``, ``run.json`` (the kind of run and the data source),
 ``metrics.jsonl`` (one JSON object a line), TensorBoard event files under ``tb/``, orbax
 checkpoints under ``checkpoints/`` (the latest ``train.keep_checkpoints``) and ``best/``
-(the best by validation ``metric``).
+(the best by validation ``metric``); ``rundir`` writes and checks them. The data come
+from ``sources``.
 
 Exact resume: the data of step s and every random key of step s are pure functions of
 (seed, s), and the state is restored bit for bit, so a run killed at any point and
@@ -17,17 +18,13 @@ once (``experiments/sweep.py``).
 
 from __future__ import annotations
 
-import collections
-import functools
 import hashlib
 import json
 import logging
 import math
 import os
-import queue
-import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -39,12 +36,32 @@ import orbax.checkpoint as ocp
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from indoorbev_jax.augment import ObjectDatabase, augment_batch, build_object_database
-from indoorbev_jax.config import Config, check_train_seed, config_diff
+from indoorbev_jax.augment import ObjectDatabase, augment_batch
+from indoorbev_jax.config import Config, check_train_seed
 from indoorbev_jax.data import kitti
-from indoorbev_jax.data.rasterize import rasterize_boxes
 from indoorbev_jax.losses import seed_loss, set_loss
 from indoorbev_jax.models import IndoorBEV
+from indoorbev_jax.rundir import (
+    Checkpoints,
+    MetricsLog,
+    check_resume,
+    check_run_kind,
+    holds_workdir,
+    other_kind,
+    read_json,
+    run_record,
+    write_text_atomic,
+    writes_run_files,
+)
+from indoorbev_jax.sources import (
+    GT_DATABASE_BATCHES,
+    KittiSource,
+    SimSource,
+    box_targets,
+    gt_database,
+    prefetch,
+    val_batches,
+)
 from indoorbev_jax.types import Batch
 from indoorbev_jax.xla_flags import train_compiler_options
 
@@ -56,14 +73,6 @@ log = logging.getLogger("indoorbev_jax.train")
 # --seed a`` roots its scene j at ``fold_in(key(a), j)``, so its scenes 0-3 share these
 # keys in another role: no scene key is shared, so no frame is.)
 KEY_TRAIN_DATA, KEY_VAL_DATA, KEY_INIT, KEY_STEPS = 0, 1, 2, 3
-
-# Fields a resumed run may change: they set when to log, evaluate and checkpoint and how many
-# checkpoints to keep, never what the parameters become. Not ``train.total_steps`` (the
-# cosine schedule ends at it) nor ``train.eval_batches`` or ``inference.*`` (they change the
-# validation scores that rank ``best/``).
-RESUME_MAY_CHANGE = frozenset(
-    {"train.log_every", "train.eval_every", "train.checkpoint_every", "train.keep_checkpoints"}
-)
 
 
 @struct.dataclass
@@ -382,15 +391,6 @@ def replicate(tree, mesh: Mesh):
     return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
 
 
-def box_targets(batch: Batch, grid) -> Batch:
-    """The batch with each object's footprint replaced by its rasterised labelled box
-    (``data.mask_targets = "box"``, the ablation against true-shape targets)."""
-    t = batch.targets
-    boxes = jnp.concatenate([t.pos[..., :2], t.dims[..., :2], t.yaw[..., None]], -1)  # [B, M, 5]
-    ids, masks = jax.vmap(rasterize_boxes, in_axes=(0, 0, None))(boxes, t.valid, grid)
-    return batch.replace(targets=t.replace(masks=masks, instance_ids=ids))
-
-
 def training_batch(
     config: Config, batch: Batch, key: jax.Array, database: ObjectDatabase | None = None
 ) -> Batch:
@@ -402,323 +402,6 @@ def training_batch(
     if config.data.mask_targets == "box":
         batch = box_targets(batch, config.grid)
     return batch
-
-
-def gt_database(source: Callable[[int], Batch], batches: int, grid) -> ObjectDatabase:
-    """Object database for ground-truth sampling from the first ``batches`` training batches
-    (``augment.gt_sampling > 0``)."""
-    frames = jax.tree.map(lambda *xs: np.concatenate(xs), *[source(i) for i in range(batches)])
-    database = build_object_database(frames, grid)  # one compile for all the frames
-    if database.classes.shape[0] == 0:
-        raise ValueError(
-            f"augment.gt_sampling: the first {batches} training batches hold no object clear "
-            "of the grid's edge to paste (the object database is empty); set "
-            "augment.gt_sampling=0 or check the data's labels"
-        )
-    return database
-
-
-class SimSource:
-    """On-device simulated batches: batch of step s = ``generate_batch(fold_in(key, s))``
-    from the simulator's ``split`` (train, val or test layouts)."""
-
-    def __init__(self, config: Config, key: jax.Array, split: str = "train"):
-        from indoorbev_sim import generate_batch
-
-        self.key = key
-        self._generate = jax.jit(lambda k: generate_batch(k, config, split))
-
-    def __call__(self, step: int) -> Batch:
-        return self._generate(jax.random.fold_in(self.key, step))
-
-
-class KittiSource:
-    """Batches from a KITTI-style folder, reshuffled each epoch from (seed, epoch).
-
-    A frame that fails to load is reported by name; with ``skip_bad`` it is replaced by the
-    next good frame of the epoch, otherwise the error stops the run at once.
-    """
-
-    def __init__(self, root, split: str, config: Config, seed: int, skip_bad: bool = False):
-        from indoorbev_jax.data.dataset import KittiDataset
-
-        self.dataset = KittiDataset(root, split, config)
-        self.batch_size = config.train.batch_size
-        if len(self.dataset) < self.batch_size:
-            raise ValueError(
-                f"{root}/{split}.txt: {len(self.dataset)} frames, fewer than "
-                f"train.batch_size={self.batch_size}"
-            )
-        self.seed = seed
-        self.skip_bad = skip_bad
-        self.bad: set[int] = set()
-        if not skip_bad:  # before the run starts (and writes config.json), not at step k
-            for frame_id in self.dataset.ids:
-                path = kitti.frame_paths(root, frame_id)["labels"]
-                _check_object_count(path, len(kitti.read_labels(path, config.data)), config)
-
-    def _order(self, epoch: int) -> np.ndarray:
-        return np.random.default_rng([self.seed, epoch]).permutation(len(self.dataset))
-
-    def __call__(self, step: int) -> Batch:
-        from indoorbev_jax.data.dataset import collate
-
-        per_epoch = len(self.dataset) // self.batch_size
-        epoch, k = divmod(step, per_epoch)
-        order = self._order(epoch)
-        items, pos = [], k * self.batch_size
-        while len(items) < self.batch_size:
-            index = int(order[pos % len(order)])
-            pos += 1
-            if index in self.bad:
-                continue
-            frame = load_or_skip(self.dataset, index, self.skip_bad, "frame")
-            if frame is not None:
-                items.append(frame)
-                continue
-            self.bad.add(index)
-            if len(self.bad) == len(self.dataset):
-                raise kitti.DatasetError(f"{self.dataset.root}: no readable frame left")
-        return collate(items)
-
-
-def _check_object_count(path, objects: int, config: Config) -> None:
-    """More objects than ``data.max_objects`` is an error: the targets keep the first
-    ones, and the rest would train (and be scored) as background, without a word."""
-    limit = config.data.max_objects
-    if objects > limit:
-        raise kitti.DatasetError(
-            f"{path}: {objects} objects, more than data.max_objects={limit} (the rest would "
-            f"be background targets); --set data.max_objects={objects} or more"
-        )
-
-
-def _rank(value) -> float:
-    """A validation metric as ``best/`` ranks it: NaN or missing (JSON null) is -inf."""
-    return float(value) if value is not None and math.isfinite(value) else -math.inf
-
-
-def load_or_skip(dataset, index: int, skip_bad: bool, kind: str) -> Batch | None:
-    """Frame ``index`` of a ``KittiDataset``; a malformed one (or one with more objects than
-    ``data.max_objects``) raises its error naming the file, or with ``skip_bad`` is
-    reported by name (as a ``kind``) and gives None."""
-    try:
-        frame, stats = dataset.load(index)
-        path = kitti.frame_paths(dataset.root, dataset.ids[index])["labels"]
-        _check_object_count(path, stats.objects, dataset.config)
-        return frame
-    except (kitti.DatasetError, OSError) as e:
-        if not skip_bad:
-            raise
-        log.warning("skipping malformed %s %s: %s", kind, dataset.ids[index], e)
-        return None
-
-
-def prefetch(source: Callable[[int], Batch], start: int, stop: int, size: int = 2) -> Iterator:
-    """Yields ``source(s)`` for s in [start, stop), computed ``size`` steps ahead on a
-    background thread; an error in the source is raised at the step it belongs to."""
-    q: queue.Queue = queue.Queue(maxsize=size)
-    done = threading.Event()
-
-    def work():
-        for s in range(start, stop):
-            if done.is_set():
-                return
-            try:
-                item = (s, source(s), None)
-            except Exception as e:  # noqa: BLE001 - handed to the consumer
-                item = (s, None, e)
-            q.put(item)
-            if item[2] is not None:
-                return
-
-    worker = threading.Thread(target=work, daemon=True, name="indoorbev-prefetch")
-    worker.start()
-    try:
-        for _ in range(start, stop):
-            s, batch, error = q.get()
-            if error is not None:
-                raise error
-            yield s, batch
-    finally:
-        done.set()
-        # Let the worker stop and finish what it dispatched: the simulator's Warp kernels
-        # call back into Python, and an interpreter that shuts down under a queued one
-        # can hang in its exit (seen after an error raised mid-run).
-        while worker.is_alive() or not q.empty():
-            try:
-                _, batch, _ = q.get(timeout=0.1)
-            except queue.Empty:
-                continue
-            if batch is not None:
-                jax.block_until_ready(batch)
-
-
-# Checkpoints ------------------------------------------------------------------------------
-
-
-def _layout(tree) -> collections.Counter:
-    """How many arrays of each (shape, dtype) a tree of arrays or array metadata holds."""
-    leaves = [x for x in jax.tree.leaves(tree) if hasattr(x, "shape")]
-    return collections.Counter((tuple(x.shape), str(np.dtype(x.dtype))) for x in leaves)
-
-
-def _check_layout(folder: Path, stored, abstract) -> None:
-    """Raises ``ValueError`` when checkpoint ``folder`` (its orbax metadata ``stored``) holds
-    arrays of other shapes than ``abstract``, naming one that differs."""
-    have, want = _layout(stored), _layout(abstract)
-    if have == want:
-        return
-    extra = next(iter(have - want), None)
-    missing = next(iter(want - have), None)
-    raise ValueError(
-        f"{folder}: holds {sum(have.values())} arrays, this run's state has "
-        f"{sum(want.values())}, and they differ (e.g. stored {extra}, expected {missing}): "
-        "the workdir holds another kind of run (a sweep's K stacked models, or a model of "
-        "another config or code version). Nothing was changed; use another workdir"
-    )
-
-
-class Checkpoints:
-    """Orbax checkpoints: the latest ``keep`` under ``checkpoints/``, the best by a
-    validation metric under ``best/``. Restoring falls back to older checkpoints, with a
-    warning, when the latest is corrupt or partial."""
-
-    def __init__(self, workdir: Path, keep: int, metric: str | None = "pq"):
-        """``metric`` None: no ``best/`` (a sweep, which does not validate)."""
-        self.metric = metric
-        options = ocp.CheckpointManagerOptions(max_to_keep=keep, enable_async_checkpointing=False)
-        # One unnamed item, said up front: left to infer it, orbax reads the layout off the
-        # newest step folder, and a partial one (empty, no default/) makes every step fail.
-        single = ocp.StandardCheckpointHandler
-        self.latest = ocp.CheckpointManager(
-            Path(workdir).absolute() / "checkpoints", options=options, item_handlers=single()
-        )
-        self.unreadable: set[int] = set()  # steps restore() skipped: save() replaces them
-        if metric is None:
-            self.best = None
-            return
-        best_options = ocp.CheckpointManagerOptions(
-            max_to_keep=1,
-            # NaN (a validation split without objects, nothing predicted) ranks last: as a
-            # number it replaced a better best/ for good.
-            best_fn=lambda m: _rank(m[metric]),
-            best_mode="max",
-            enable_async_checkpointing=False,
-        )
-        self.best = ocp.CheckpointManager(
-            Path(workdir).absolute() / "best", options=best_options, item_handlers=single()
-        )
-
-    def save(self, state: TrainState, step: int | None = None) -> None:
-        """Saves ``state`` as ``step`` (default ``state.step``; a sweep's states hold K)."""
-        step = int(state.step) if step is None else step
-        if step in self.unreadable:  # a corrupt one the run fell back past: write it anew
-            self.latest.delete(step)
-            self.unreadable.discard(step)
-        if step not in self.latest.all_steps():
-            self.latest.save(step, args=ocp.args.StandardSave(state))
-
-    def save_best(self, state: TrainState, metrics: dict) -> None:
-        step = int(state.step)
-        if step not in self.best.all_steps():
-            self.best.save(
-                step, args=ocp.args.StandardSave(state), metrics={self.metric: metrics[self.metric]}
-            )
-
-    def restore(self, template: TrainState) -> TrainState | None:
-        """The newest readable checkpoint, or None when there is none. A checkpoint whose
-        arrays are not the template's (another kind of run: a sweep's K stacked models, a
-        model of another shape) raises ``ValueError``: falling back past it would delete it."""
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template)
-        self.latest.reload()
-        for step in sorted(self.latest.all_steps(), reverse=True):
-            try:
-                stored = self.latest.item_metadata(step)
-            except Exception:  # noqa: BLE001 - no readable layout: the restore below decides
-                stored = None
-            if stored is not None:
-                _check_layout(self.latest.directory / str(step), stored, abstract)
-            try:
-                return self.latest.restore(step, args=ocp.args.StandardRestore(abstract))
-            except Exception as e:  # noqa: BLE001 - any unreadable checkpoint falls back
-                log.warning("checkpoint %d is unreadable (%s); trying an older one", step, e)
-                self.unreadable.add(step)
-        return None
-
-    def close(self) -> None:
-        self.latest.close()
-        if self.best is not None:
-            self.best.close()
-
-
-# Logging ----------------------------------------------------------------------------------
-
-
-def truncate_log(path: Path, step: int) -> None:
-    """Keeps the records of a JSON-lines log up to ``step`` (a resume from that step).
-
-    A last line that is not a JSON object (a write cut off by a kill) is dropped with a
-    warning; such a line anywhere else is corruption and raises ``ValueError`` naming it.
-    """
-    lines = [
-        (n, line)
-        for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1)
-        if line.strip()
-    ]
-    kept = []
-    for k, (n, line) in enumerate(lines):
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError:
-            record = None
-        if isinstance(record, dict):
-            if record.get("step", 0) <= step:
-                kept.append(line)
-        elif k < len(lines) - 1:
-            raise ValueError(f"{path}: line {n} is not a JSON object: {line[:80]!r}")
-        else:
-            log.warning("%s: line %d is cut off (an interrupted write); dropped", path, n)
-    write_text_atomic(path, "".join(line + "\n" for line in kept))
-
-
-class MetricsLog:
-    """``metrics.jsonl`` plus TensorBoard; on resume, lines past the restored step go.
-
-    A last line that is not a JSON object (a write cut off by a kill) is dropped with a
-    warning; such a line anywhere else is corruption and raises ``ValueError`` naming it.
-    """
-
-    def __init__(self, workdir: Path, resume_step: int):
-        self.path = Path(workdir) / "metrics.jsonl"
-        self.tb = None
-        if not writes_run_files():  # the other hosts of a multi-host run: process 0 logs
-            return
-        if self.path.exists():
-            truncate_log(self.path, resume_step)
-        from tensorboardX import SummaryWriter
-
-        self.tb = SummaryWriter(str(Path(workdir) / "tb"), purge_step=resume_step + 1)
-
-    def write(self, step: int, kind: str, values: dict) -> None:
-        if self.tb is None:
-            return
-        # Undefined metrics (NaN) are written as null: strict JSON.
-        clean = {
-            k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-            for k, v in values.items()
-        }
-        record = {"step": step, "kind": kind, **clean}
-        with self.path.open("a") as f:
-            f.write(json.dumps(record) + "\n")
-        for name, value in values.items():
-            if isinstance(value, int | float) and math.isfinite(value):
-                self.tb.add_scalar(f"{kind}/{name}", value, step)
-        self.tb.flush()
-
-    def close(self) -> None:
-        if self.tb is not None:
-            self.tb.close()
 
 
 # Evaluation -------------------------------------------------------------------------------
@@ -762,26 +445,6 @@ def _scalars(metrics: dict) -> dict:
     return out
 
 
-# Training batches cut into the ground-truth sampling database.
-GT_DATABASE_BATCHES = 8
-
-
-def _val_batches(val_ds, batch_size: int, batches: int, skip_bad: bool) -> list[Batch]:
-    """The first ``batches`` validation batches; with ``skip_bad`` a malformed frame is
-    reported by name and left out, as for training (else its error stops the start)."""
-    from indoorbev_jax.data.dataset import collate
-
-    items = []
-    for index in range(len(val_ds)):
-        if len(items) == batches * batch_size:
-            break
-        frame = load_or_skip(val_ds, index, skip_bad, "validation frame")
-        items += [] if frame is None else [frame]
-    if not items:
-        raise kitti.DatasetError(f"{val_ds.root / 'val.txt'}: no readable frame to validate on")
-    return [collate(items[k : k + batch_size]) for k in range(0, len(items), batch_size)]
-
-
 def make_sources(
     config: Config, data: str | None, seed: int, skip_bad: bool, validate: bool = True
 ):
@@ -806,151 +469,11 @@ def make_sources(
                 raise kitti.DatasetError(
                     f"{Path(data) / 'val.txt'}: lists no frames to validate on"
                 )
-            val = _val_batches(val_ds, t.batch_size, t.eval_batches, skip_bad)
+            val = val_batches(val_ds, t.batch_size, t.eval_batches, skip_bad)
     if config.data.mask_targets == "box":  # training targets only; validation stays true shape
         boxed = jax.jit(box_targets, static_argnums=1)
         return (lambda step, shaped=train: boxed(shaped(step), config.grid)), val
     return train, val
-
-
-def writes_run_files() -> bool:
-    """Whether this process writes a run's own files (config.json, run.json, the metrics
-    logs): the hosts of a multi-host run share the workdir, and each wrote every line of
-    metrics.jsonl (orbax coordinates the checkpoints itself)."""
-    return jax.process_index() == 0
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    kitti.atomic_write(Path(path), lambda tmp: tmp.write_text(text))
-
-
-def _describe_source(data: str | None) -> str:
-    return "the simulator" if data is None else data
-
-
-SPLIT_FILES = ("train.txt", "val.txt")
-
-
-def _elsewhere(kind: str) -> str:
-    if kind == "sweep":
-        return "sweep in another workdir"
-    return "train in another workdir (--init-from this one to start from its parameters)"
-
-
-def run_record(data: str | None, kind: str = "train") -> dict:
-    """What ``run.json`` records: the kind of run ("train" or "sweep"), the data source (a
-    folder, None for the simulator) and, for a folder, the sha256 of its split lists, so a
-    resume that would read other frames, or the same ones in another order, is refused."""
-    if data is None:
-        return {"kind": kind, "data": None}
-    splits = {}
-    for name in SPLIT_FILES[:1] if kind == "sweep" else SPLIT_FILES:  # a sweep reads train only
-        path = Path(data) / name
-        splits[name] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
-    return {"kind": kind, "data": data, "splits": splits}
-
-
-# Files only one kind of run writes (also in workdirs from before run.json named the kind).
-_KIND_FILES = {"train": ("metrics.jsonl", "best"), "sweep": ("hypers.json", "sweep.jsonl")}
-
-
-def read_json(path: Path):
-    """``path``'s JSON; a file that is not JSON is a ValueError naming it."""
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e})") from None
-
-
-def _other_kind(workdir: Path, kind: str) -> str | None:
-    """What says ``workdir`` holds the other kind of run than ``kind`` ("train" or
-    "sweep"), or None: run.json's kind, or for a run.json from before it named one, the
-    files only the other kind writes."""
-    other = "sweep" if kind == "train" else "train"
-    run_path = workdir / "run.json"
-    recorded = read_json(run_path).get("kind") if run_path.exists() else None
-    if recorded:
-        return f"run.json says {other!r}" if recorded == other else None
-    found = [name for name in _KIND_FILES[other] if (workdir / name).exists()]
-    return f"it has {found[0]}" if found else None
-
-
-def check_run_kind(workdir: Path, kind: str) -> None:
-    """Raises ``ValueError`` when ``workdir`` holds the other kind of run (a training run
-    for a sweep, or a sweep for training): with the same config and data the resume checks
-    passed, and the first checkpoint save deleted the other run's checkpoints."""
-    what = _other_kind(workdir, kind)
-    if what:
-        held, verb = ("a sweep", "train") if kind == "train" else ("a training run", "sweep")
-        raise ValueError(f"{workdir}: holds {held} ({what}); {verb} in another workdir")
-
-
-def _has_checkpoint(workdir: Path) -> bool:
-    """Whether ``workdir/checkpoints`` holds a finished step (orbax names them by step;
-    an interrupted save is a ``<step>.orbax-checkpoint-tmp`` folder)."""
-    folder = workdir / "checkpoints"
-    return folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())
-
-
-def check_resume(
-    config_path: Path, run_path: Path, config: Config, data: str | None, kind: str = "train"
-) -> None:
-    """Raises ``ValueError`` unless the run (``kind`` "train" or "sweep") in
-    ``config_path``'s folder may go on with ``config`` and ``data`` (a resolved folder, or
-    None for the simulator): only fields in ``RESUME_MAY_CHANGE`` may differ (logged as a
-    note), and the data source and the split lists it reads may not."""
-    diff = config_diff(Config.from_dict(json.loads(config_path.read_text())), config)
-    lines = {k: f"  {k}: {a!r} -> {b!r}" for k, (a, b) in diff.items()}
-    refused = [line for k, line in lines.items() if k not in RESUME_MAY_CHANGE]
-    elsewhere = _elsewhere(kind)
-    if refused:
-        fresh = (
-            "it has no checkpoint yet, so nothing was trained: remove its config.json and "
-            f"run.json to start it afresh with these settings, or {elsewhere}"
-            if not _has_checkpoint(config_path.parent)
-            else elsewhere
-        )
-        raise ValueError(
-            f"{config_path}: the workdir holds a run with another config (saved -> given):\n"
-            + "\n".join(refused)
-            + f"\nonly {', '.join(sorted(RESUME_MAY_CHANGE))} may change on resume; {fresh}"
-        )
-    if lines:
-        log.info("note: resuming with (saved -> given):\n%s", "\n".join(lines.values()))
-    if not run_path.exists():  # a run from before run.json was kept: nothing to compare
-        return
-    record = read_json(run_path)
-    saved = record["data"]
-    if saved != data:
-        raise ValueError(
-            f"{run_path}: the run trained on {_describe_source(saved)}, this command gives "
-            f"{_describe_source(data)} (if the same data moved, edit the data field of run.json)"
-        )
-    if data is None or "splits" not in record or not _has_checkpoint(run_path.parent):
-        return  # the simulator, a run.json from before the digests, or nothing trained yet
-    now = run_record(data, kind)["splits"]
-    for name, digest in record["splits"].items():
-        if name in now and now[name] != digest:
-            raise ValueError(
-                f"{run_path}: {Path(data) / name} changed since the run started (sha256 "
-                f"{str(digest)[:12]} -> {str(now[name])[:12]}), so the resumed run would "
-                f"read other frames or another order: restore the list, or {elsewhere}"
-            )
-
-
-def holds_workdir(run_fn):
-    """Runs ``run_fn(config, workdir, ...)`` holding ``kitti.hold_folder``'s lock on
-    ``workdir/.lock``: two runs started in one workdir both ran to the end, writing one
-    metrics log and one set of checkpoints. Only process 0 of a multi-host run takes it
-    (its hosts share the workdir)."""
-
-    @functools.wraps(run_fn)
-    def run(config, workdir, *args, **kwargs):
-        workdir = Path(workdir)
-        with kitti.hold_folder(workdir, "run", "workdir", take=writes_run_files()):
-            return run_fn(config, workdir, *args, **kwargs)
-
-    return run
 
 
 @holds_workdir
@@ -967,7 +490,7 @@ def train_and_evaluate(
     """Trains ``config`` in ``workdir``, resuming from its latest readable checkpoint.
 
     A workdir that holds a run resumes only with the same data source and a config that
-    differs at most in ``RESUME_MAY_CHANGE``; ``config.json`` and ``run.json`` are written
+    differs at most in ``rundir.RESUME_MAY_CHANGE``; ``config.json`` and ``run.json`` are written
     once every check has passed.
 
     Args:
@@ -1095,7 +618,7 @@ def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config
             "of experiments/train.py or an exported model file (.msgpack)"
         )
     config = Config.from_dict(read_json(config_file))
-    if _other_kind(workdir, "train"):
+    if other_kind(workdir, "train"):
         raise ValueError(
             f"{workdir}: a sweep's workdir: its checkpoints hold K stacked models, which "
             "predict, export and --init-from cannot load as one model (export one with "
