@@ -52,15 +52,14 @@ import time
 import jax
 import numpy as np
 
+from indoorbev_jax.checks import check_out_file, write_json
 from indoorbev_jax.cli import (
     HelpFormatter,
     add_views_argument,
-    check_out_file,
     join_negative_values,
     positive_int,
     rpy_argument,
     seed_int,
-    write_json,
 )
 from indoorbev_jax.config import ConfigError, InferenceConfig
 from indoorbev_jax.evaluate import report

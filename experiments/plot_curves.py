@@ -11,7 +11,8 @@ import argparse
 import json
 from pathlib import Path
 
-from indoorbev_jax.cli import HelpFormatter, check_out_file
+from indoorbev_jax.checks import check_out_file
+from indoorbev_jax.cli import HelpFormatter
 from indoorbev_jax.data import kitti
 
 PANELS = (

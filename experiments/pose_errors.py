@@ -42,7 +42,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from eval_sim import add_frame_set_arguments, check_frame_set, default_seed  # noqa: E402
 
 from indoorbev_jax.boxes import fit_box, segment_boxes  # noqa: E402
-from indoorbev_jax.cli import HelpFormatter, add_views_argument, write_json  # noqa: E402
+from indoorbev_jax.checks import write_json  # noqa: E402
+from indoorbev_jax.cli import HelpFormatter, add_views_argument  # noqa: E402
 from indoorbev_jax.config import ConfigError  # noqa: E402
 from indoorbev_jax.geometry import box_corners, cell_centers, wrap_angle  # noqa: E402
 from indoorbev_jax.metrics import mask_intersections  # noqa: E402

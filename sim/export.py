@@ -37,9 +37,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from indoorbev_jax.cli import check_folder, check_interrupted, check_seed, check_whole
+from indoorbev_jax.checks import check_folder, check_seed, check_whole
 from indoorbev_jax.config import Config, flatten_dict
 from indoorbev_jax.data import kitti
+from indoorbev_jax.interrupts import check_interrupted
 from indoorbev_jax.rosbag import (
     check_bag_target,
     check_partial,

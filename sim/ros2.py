@@ -27,6 +27,7 @@ from collections.abc import Iterator
 import jax
 import numpy as np
 
+from indoorbev_jax.checks import check_positive, check_seed, check_whole
 from indoorbev_jax.config import Config
 from indoorbev_jax.mount import LEVEL, LidarMount
 from indoorbev_jax.rosbag import MARKER_ARRAY, POINTCLOUD2, cloud_msg, markers_msg, typestore
@@ -61,7 +62,6 @@ def check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_ti
                    mount=LEVEL, level_frame=None, frame_id="lidar") -> None:  # fmt: skip
     """A ``ValueError`` naming the first setting of ``publish`` that cannot work, before
     the node starts."""
-    from indoorbev_jax.cli import check_positive, check_whole
     from indoorbev_jax.ros2 import check_topic_name
 
     check_positive("rate", rate, "frames per second")
@@ -129,7 +129,6 @@ def publish(
     Returns:
       {"frames": published, "rate_hz": achieved rate, "late": frames sent over a period late}.
     """
-    from indoorbev_jax.cli import check_seed
     from indoorbev_jax.ros2 import runtime
 
     mount = LidarMount(*lidar_rpy)

@@ -7,9 +7,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from indoorbev_jax.cli import check_folder, check_interrupted
+from indoorbev_jax.checks import check_folder
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
+from indoorbev_jax.interrupts import check_interrupted
 from indoorbev_jax.viz import render_bev
 
 # One renderer for ground truth and predictions.

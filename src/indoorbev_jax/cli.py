@@ -8,17 +8,16 @@ indoorbev ros2 detect --checkpoint MODEL [--topic /livox/lidar] [--record BAG]
 
 from __future__ import annotations
 
-import _thread
 import argparse
 import math
-import numbers
 import os
-import signal
 import sys
-import threading
 from pathlib import Path
 
 import numpy as np
+
+from indoorbev_jax.checks import check_seed, whole_bound
+from indoorbev_jax.interrupts import INTERRUPTED, catch_interrupts
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -60,13 +59,9 @@ positive_float = _finite_number(zero_allowed=False)
 nonnegative_float = _finite_number(zero_allowed=True)
 
 
-def _bound(minimum: int) -> str:
-    return "> 0" if minimum == 1 else f">= {minimum}"
-
-
 def _whole_number(minimum: int):
     """argparse type: a whole number >= ``minimum`` (0 or 1)."""
-    bound = _bound(minimum)
+    bound = whole_bound(minimum)
 
     def parse(text: str) -> int:
         try:
@@ -84,8 +79,6 @@ def _whole_number(minimum: int):
 
 positive_int = _whole_number(1)
 nonnegative_int = _whole_number(0)
-# jax.random.key folds a seed into 32 bits: larger or negative seeds would repeat others.
-SEED_LIMIT = 2**32
 
 
 def seed_int(text: str) -> int:
@@ -96,79 +89,6 @@ def seed_int(text: str) -> int:
         raise argparse.ArgumentTypeError(
             f"expected a whole number in [0, 2**32), got {text!r}"
         ) from None
-
-
-# The same checks for library arguments (what the argparse types above leave to Python
-# callers): a ValueError naming the argument.
-def _is_whole(value) -> bool:
-    """An int or numpy integer, not a bool."""
-    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
-
-
-def check_whole(name: str, value, minimum: int, note: str = "") -> int:
-    """``value`` if it is an int (not a bool) >= ``minimum``; ``note`` follows the bound in
-    the message, e.g. " (0: never)"."""
-    if not _is_whole(value) or value < minimum:
-        raise ValueError(f"{name}: expected a whole number {_bound(minimum)}{note}, got {value!r}")
-    return int(value)  # numpy integers too
-
-
-def check_seed(name: str, value) -> int:
-    """``value`` if it is a whole number in [0, 2**32) (``jax.random.key``'s distinct seeds)."""
-    if not (_is_whole(value) and 0 <= value < SEED_LIMIT):
-        raise ValueError(f"{name}: expected a whole number in [0, 2**32), got {value!r}")
-    return int(value)
-
-
-def check_folder(name: str, path, file_error: type[Exception] = ValueError) -> Path:
-    """``path`` as a Path, unless it is empty (an unset shell variable would mean the current
-    folder; a ValueError) or an existing file (``file_error``)."""
-    if str(path) == "":
-        raise ValueError(f"{name}: an empty path; expected a folder")
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise file_error(f"{path}: is a file; {name} must be a folder")
-    return path
-
-
-def check_out_file(flag: str, path) -> Path:
-    """``path``, an output file given by ``flag``, checked before a long run writes it (a
-    bad path failed after the whole evaluation, losing it): not empty, not a folder, and its
-    folder made and writable. Raises ``OSError`` / ``ValueError`` naming ``flag``."""
-    if str(path) == "":
-        raise ValueError(f"{flag}: an empty path; expected a file name")
-    path = Path(path)
-    if path.is_dir():
-        raise IsADirectoryError(f"{flag} {path}: is a folder, expected a file name")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        from indoorbev_jax.data.kitti import file_in_path
-
-        blocker = file_in_path(path.parent)
-        reason = f"{blocker} is a file" if blocker is not None else (e.strerror or str(e))
-        raise OSError(e.errno, f"{flag} {path}: cannot make its folder ({reason})") from e
-    if not os.access(path.parent, os.W_OK | os.X_OK):
-        raise PermissionError(f"{flag} {path}: its folder {path.parent} is not writable")
-    return path
-
-
-def write_json(path, payload, indent: int = 2) -> None:
-    """``payload`` as JSON in ``path``, atomically (``kitti.atomic_write``)."""
-    import json
-
-    from indoorbev_jax.data import kitti
-
-    text = json.dumps(payload, indent=indent) + "\n"
-    kitti.atomic_write(Path(path), lambda tmp: tmp.write_text(text))
-
-
-def check_positive(name: str, value, unit: str = "seconds") -> float:
-    """``value`` if it is a finite number > 0 (not a bool), ``unit`` naming it in the message."""
-    ok = isinstance(value, int | float) and not isinstance(value, bool)
-    if not (ok and math.isfinite(value) and value > 0):
-        raise ValueError(f"{name}: expected {unit} > 0, got {value!r}")
-    return value
 
 
 def _intensity_units(text: str) -> str | float:
@@ -665,57 +585,6 @@ def main(argv: list[str] | None = None) -> int:
     return args.func(args)
 
 
-INTERRUPTED = 130  # the shell's status for a command stopped by Ctrl-C
-# Set by exit_with's SIGINT handler: Python prints and drops a KeyboardInterrupt raised
-# inside a garbage-collector callback (JAX has one), so a Ctrl-C during a start-up could be
-# lost and a node run on until the next one; ros2.runtime.start_node checks it.
-SIGINT_SEEN = threading.Event()
-
-
-# Set when Python dropped our KeyboardInterrupt (raised inside a garbage-collector
-# callback): ``check_interrupted`` acts on it between units of work.
-SIGINT_DROPPED = threading.Event()
-
-
-def _remember_sigint(signum, frame):
-    SIGINT_SEEN.set()
-    SIGINT_DROPPED.clear()  # this one is raised
-    raise KeyboardInterrupt
-
-
-def _redeliver_soon() -> None:
-    """SIGINT to the main thread again in 50 ms, from another thread: delivered at once it
-    is handled inside the unraisable hook itself, and dropped there for good."""
-    timer = threading.Timer(0.05, _thread.interrupt_main)
-    timer.daemon = True
-    timer.start()
-
-
-def _quiet_dropped_interrupts(hook, redeliver=_redeliver_soon):
-    """A ``sys.unraisablehook`` that, for a dropped KeyboardInterrupt, delivers the Ctrl-C
-    again (``redeliver``: as if it came now, outside the callback) instead of printing
-    "Exception ignored in: <function _xla_gc_callback> ... KeyboardInterrupt" and going on;
-    ``SIGINT_DROPPED`` stays set until it is raised, for ``check_interrupted``."""
-
-    def handle(unraisable):
-        if isinstance(unraisable.exc_value, KeyboardInterrupt):
-            SIGINT_DROPPED.set()
-            redeliver()
-            return
-        hook(unraisable)
-
-    return handle
-
-
-def check_interrupted() -> None:
-    """Raises the KeyboardInterrupt of a Ctrl-C that Python dropped (see
-    ``SIGINT_DROPPED``); long loops call it between frames, so such a Ctrl-C still stops
-    them (``indoorbev-sim show`` wrote all its pictures and exited 0)."""
-    if SIGINT_DROPPED.is_set():
-        SIGINT_DROPPED.clear()
-        raise KeyboardInterrupt
-
-
 def _check_jax_platforms(prog: str) -> None:
     """One line, status 2, when ``JAX_PLATFORMS`` names a backend this machine lacks: JAX
     ends in a traceback (for ``cuda`` without its plugin, a bare AssertionError)."""
@@ -746,9 +615,7 @@ def exit_with(main_fn, prog: str, check_platforms: bool = True):
     crashes (a segmentation fault after the warm-up of ``ros2 detect`` was cut short).
     Output files are written atomically, so nothing half-written is left under its name.
     """
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not if ignored
-        signal.signal(signal.SIGINT, _remember_sigint)
-        sys.unraisablehook = _quiet_dropped_interrupts(sys.unraisablehook)
+    catch_interrupts()
     if check_platforms:
         _check_jax_platforms(prog)
     try:

@@ -29,6 +29,8 @@ from typing import Any
 import jax
 import numpy as np
 
+from indoorbev_jax.checks import SEED_LIMIT
+
 CLASS_NAMES: tuple[str, ...] = (
     "Table",
     "Chair",
@@ -615,8 +617,6 @@ def check_train_seed(train: TrainConfig) -> None:
     takes 32 bits here (2**32 was seed 0's run again) and numpy's generator refuses < 0 (at
     step 0, after config.json). Not a field check: a model file of an older version with
     such a seed still loads (inference never draws from it)."""
-    from indoorbev_jax.cli import SEED_LIMIT  # the bound of every seed option
-
     if not 0 <= train.seed < SEED_LIMIT:
         _fail("train.seed", f"must lie in [0, 2**32) to start a run, got {train.seed}")
 
@@ -848,9 +848,8 @@ def _from_dict(kind, d: dict[str, Any], prefix: str):
     hints = typing.get_type_hints(kind)
     kwargs = {}
     for name, value in d.items():
-        default = getattr(kind(), name)
-        if dataclasses.is_dataclass(default):
-            value = _from_dict(type(default), value, f"{prefix}{name}.")
+        if isinstance(hints[name], type) and dataclasses.is_dataclass(hints[name]):  # a section
+            value = _from_dict(hints[name], value, f"{prefix}{name}.")
         else:
             # A hand-edited config.json ("2" for 2, "false" for false) fails here, naming the
             # field, rather than deep inside a jitted function.

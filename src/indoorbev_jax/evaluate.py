@@ -23,8 +23,16 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from indoorbev_jax.checks import check_out_file, write_json
 from indoorbev_jax.config import Config, GridConfig
-from indoorbev_jax.metrics import DEFAULT_GROUPING, Evaluator
+from indoorbev_jax.metrics import (
+    DEFAULT_GROUPING,
+    Evaluator,
+    confusion_json,
+    format_confusion,
+    format_found,
+    format_table,
+)
 
 CONFUSION_IOU = 0.5  # mask IoU of the printed class confusion (AP@0.50's matches)
 
@@ -190,8 +198,6 @@ def report(
       ``"tag_confusion@0.5"`` with tags and ``"breakdowns@<iou>"`` (by grouping) with
       breakdowns).
     """
-    from indoorbev_jax.metrics import confusion_json, format_confusion, format_found, format_table
-
     iou = CONFUSION_IOU
     results, confusion = evaluator.compute(), evaluator.confusion(iou)
     head = f"confusion at mask IoU {iou:g} (rows: ground truth, columns: found as)"
@@ -219,7 +225,6 @@ def report(
 
 def eval_command(args: argparse.Namespace) -> int:
     """Entry point of ``indoorbev eval``: prints ``report``'s text, optionally writes its JSON."""
-    from indoorbev_jax.cli import check_out_file, write_json
     from indoorbev_jax.config import ConfigError
     from indoorbev_jax.data import kitti
     from indoorbev_jax.data.dataset import dataset_config

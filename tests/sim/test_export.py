@@ -20,7 +20,7 @@ from indoorbev_sim import export as export_mod
 from indoorbev_sim import show
 from indoorbev_sim.cli import main
 
-from indoorbev_jax.cli import check_seed, check_whole
+from indoorbev_jax.checks import check_seed, check_whole
 from indoorbev_jax.config import CLASS_NAMES, Config
 from indoorbev_jax.data import kitti
 from indoorbev_jax.rosbag import BagError
@@ -197,7 +197,7 @@ def test_show_never_leaves_a_half_written_picture(exported, tmp_path, monkeypatc
     garbage-collector callback) let show write every picture and exit 0."""
     from PIL import Image
 
-    from indoorbev_jax import cli
+    from indoorbev_jax import interrupts
 
     root, _, _ = exported
     (good,) = show.show(root, tmp_path, CFG, ids=["000000"])
@@ -216,9 +216,9 @@ def test_show_never_leaves_a_half_written_picture(exported, tmp_path, monkeypatc
     ]
     # A dropped Ctrl-C stops the loop after the picture in progress.
     hook_calls, redelivered = [], []
-    hook = cli._quiet_dropped_interrupts(hook_calls.append, lambda: redelivered.append(1))
+    hook = interrupts._quiet_dropped_interrupts(hook_calls.append, lambda: redelivered.append(1))
     hook(types.SimpleNamespace(exc_value=KeyboardInterrupt()))
-    assert hook_calls == [] and redelivered == [1] and cli.SIGINT_DROPPED.is_set()
+    assert hook_calls == [] and redelivered == [1] and interrupts.SIGINT_DROPPED.is_set()
     other = types.SimpleNamespace(exc_value=RuntimeError("x"))
     hook(other)
     assert hook_calls == [other] and redelivered == [1]  # anything else is printed as before
@@ -226,7 +226,9 @@ def test_show_never_leaves_a_half_written_picture(exported, tmp_path, monkeypatc
     out = tmp_path / "stopped"
     with pytest.raises(KeyboardInterrupt):
         show.show(root, out, CFG, ids=["000000", "000001"])
-    assert [p.name for p in out.iterdir()] == ["000000.png"] and not cli.SIGINT_DROPPED.is_set()
+    assert [p.name for p in out.iterdir()] == [
+        "000000.png"
+    ] and not interrupts.SIGINT_DROPPED.is_set()
 
 
 def _cli(out, cache, *extra):

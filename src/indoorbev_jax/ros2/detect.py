@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from indoorbev_jax.boxes import check_box_source
+from indoorbev_jax.checks import check_positive, check_whole
 from indoorbev_jax.data import kitti
 from indoorbev_jax.mount import LEVEL, LidarMount, check_level_frame
 from indoorbev_jax.predict import Predictor, load_model, with_thresholds
@@ -237,7 +238,6 @@ def check_settings(topic: str, out_ns: str, log_every: float, max_frames: int) -
     """{output name: topic} of the node, after checking the settings that would otherwise
     fail only once the model has warmed up (or never, silently); a ``ValueError`` names
     the setting."""
-    from indoorbev_jax.cli import check_positive, check_whole
     from indoorbev_jax.ros2 import check_topic_name
 
     check_topic_name(topic, "topic")

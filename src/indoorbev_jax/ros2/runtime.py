@@ -8,6 +8,7 @@ import signal
 import sys
 import threading
 
+from indoorbev_jax.interrupts import SIGINT_SEEN, check_interrupted
 from indoorbev_jax.ros2 import require_rclpy
 
 __all__ = [
@@ -32,8 +33,6 @@ def qos(reliable: bool, depth: int):
 def start_node(name: str, ros_args: list[str] | None = None):
     """(context, node) in a fresh rclpy context; ``ros_args`` are what followed
     ``--ros-args`` on the command line (remappings, ``-p`` parameters, log levels)."""
-    from indoorbev_jax.cli import SIGINT_SEEN, check_interrupted
-
     check_interrupted()
     if SIGINT_SEEN.is_set():  # a Ctrl-C during the start-up that Python dropped
         raise KeyboardInterrupt
