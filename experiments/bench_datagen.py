@@ -5,7 +5,7 @@ Warp ray casting, noise, labels, masks, padded targets in one XLA program).
 Reference: the plain sequential pipeline, frame by frame, on the first ``--ref-frames``
 scenes of ours' batch of the same repeat (the same scenes, times and pattern frame; the
 scene sampling is not timed for it): MuJoCo ``mj_multiRay`` for the scan and the
-visibility rays, numpy footprints, counts and filtering (``generate.reference_frame``).
+visibility rays, numpy footprints, counts and filtering (``reference.reference_frame``).
 Before any timing the labelled objects of those frames are compared with ours.
 
 Runs are interleaved (ours, reference, ours, ...) and the median per-frame time is reported.
@@ -27,6 +27,7 @@ import time
 import jax
 import numpy as np
 from indoorbev_sim import generate, lidar
+from indoorbev_sim.reference import reference_frame, scene_numpy
 
 from indoorbev_jax.cli import HelpFormatter, positive_int
 from indoorbev_jax.config import Config
@@ -68,9 +69,7 @@ def main(argv=None) -> None:
         dirs = np.asarray(pattern.frame(int(info.frame_index[0])).directions, np.float64)
         same = either = 0
         for f in range(args.ref_frames):
-            ref = generate.reference_frame(
-                cfg, generate.scene_numpy(info.scene, f), float(info.time[f]), dirs, rng
-            )
+            ref = reference_frame(cfg, scene_numpy(info.scene, f), float(info.time[f]), dirs, rng)
             ours = set(info.slot[f][batch.targets.valid[f]].tolist())
             theirs = set(np.flatnonzero(ref["labelled"]).tolist())
             same, either = same + len(ours & theirs), either + len(ours | theirs)

@@ -13,21 +13,18 @@ masks and instance ids. ``FrameInfo`` carries what the ``Batch`` has no room for
 per-object point counts, visibility and KITTI occlusion level, which object each point
 belongs to, the plan and the sensor pose.
 
-``reference_frame`` is the plain sequential pipeline (MuJoCo ``mj_multiRay`` + numpy, one
-frame at a time) on the same scene: the tests' oracle and the benchmark's baseline.
+``reference.reference_frame`` is the plain sequential pipeline (MuJoCo ``mj_multiRay`` +
+numpy, one frame at a time) on the same scene: the tests' oracle and the benchmark's baseline.
 """
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import functools
 import math
 
 import jax
 import jax.numpy as jnp
-import mujoco
-import numpy as np
 from flax import struct
 from indoorbev_sim import labels as labels_mod
 from indoorbev_sim import scenes as scenes_mod
@@ -141,7 +138,7 @@ def spread_positions(count: jax.Array, n: int) -> jax.Array:
     return jnp.where(count > n, pos, k)
 
 
-def _yaw_matrix(yaw: jax.Array) -> jax.Array:
+def yaw_matrix(yaw: jax.Array) -> jax.Array:
     c, s, z, o = jnp.cos(yaw), jnp.sin(yaw), jnp.zeros_like(yaw), jnp.ones_like(yaw)
     return jnp.stack(
         [jnp.stack([c, -s, z], -1), jnp.stack([s, c, z], -1), jnp.stack([z, z, o], -1)], -2
@@ -187,7 +184,7 @@ def simulate(
     data = scenes_mod.GeomData(geom_xpos=xpos, geom_xmat=xmat)
     origin, heading = jax.vmap(scenes_mod.sensor_pose)(scene, time)  # [B, 3], [B]
     tilt = mount_rotation(sim, scene)  # [3, 3] or [B, 3, 3]
-    rot = _yaw_matrix(heading) if tilt is None else _yaw_matrix(heading) @ tilt
+    rot = yaw_matrix(heading) if tilt is None else yaw_matrix(heading) @ tilt
     pose = sensor.Pose(origin, rot)
     directions = make_pattern(sim).frame(frame_index).directions  # [R, 3] sensor frame
     sensor_cfg = sensor.SensorConfig(
@@ -227,7 +224,7 @@ def simulate(
 
     # Visibility: one ray per primitive, aimed at its centre; it sees the primitive only
     # where the sensor could fire it (field of view, min_range).
-    target, _ = jax.vmap(functools.partial(labels_mod.visibility_targets, tpl))(scene, time)
+    target, _ = jax.vmap(labels_mod.visibility_targets)(scene, time)
     to_target = target - origin[:, None]  # [B, S * P, 3]
     vdirs = to_target / jnp.maximum(jnp.linalg.norm(to_target, axis=-1, keepdims=True), 1e-9)
     vdist, vgeom = lidar.cast_rays(model, data, origin, vdirs, sim.max_range)
@@ -381,187 +378,3 @@ def jitted_generate(config: Config, split: str = "train", batch_size: int | None
 def jitted_draw(config: Config, split: str = "train", batch_size: int | None = None):
     """``draw_frames`` jitted for (config, split, B), cached per process."""
     return jax.jit(lambda key: draw_frames(key, config, split, batch_size))
-
-
-# ------------------------------------------------------------------ sequential reference
-
-
-def scene_numpy(scene: scenes_mod.Scene, index: int):
-    """Scene ``index`` of a batched ``Scene`` as numpy arrays."""
-    return jax.tree.map(lambda x: np.asarray(x[index]), scene)
-
-
-def reference_cast(tpl: scenes_mod.SceneTemplate, size, xpos, xmat, origin, dirs, max_range):
-    """MuJoCo's ``mj_multiRay`` on one posed scene (numpy in, numpy out).
-
-    Args:
-      size, xpos: float [G, 3]; xmat: float [G, 3, 3]; origin: float [3]; dirs: float [R, 3].
-
-    Returns:
-      distance float64 [R] (-1: miss or beyond max_range), geom_id int32 [R].
-    """
-    m = copy.copy(tpl.mj_model)  # the template's model is cached and stays at rest
-    m.geom_size[:] = size
-    rb, aabb = scenes_mod.geom_bounds(tpl, np.asarray(size))
-    m.geom_rbound[:] = rb
-    m.geom_aabb[:] = aabb
-    d = mujoco.MjData(m)
-    d.geom_xpos[:] = xpos
-    d.geom_xmat[:] = np.asarray(xmat).reshape(-1, 9)
-    r = len(dirs)
-    dist = np.zeros(r)
-    gid = np.zeros(r, np.int32)
-    mujoco.mj_multiRay(
-        m, d, np.asarray(origin, np.float64), np.asarray(dirs, np.float64).reshape(-1),
-        None, 1, -1, gid, dist, None, r, max_range,
-    )  # fmt: skip
-    miss = (gid < 0) | (dist < 0) | (dist > max_range)
-    return np.where(miss, -1.0, dist), np.where(miss, -1, gid).astype(np.int32)
-
-
-def _np_world_prims(scene, time):
-    pose = np.asarray(scene.pose) + 0.0
-    pose[:, :2] += np.asarray(scene.velocity) * time
-    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
-    lx, ly = scene.prims.pos[..., 0], scene.prims.pos[..., 1]
-    x = c[:, None] * lx - s[:, None] * ly + pose[:, None, 0]
-    y = s[:, None] * lx + c[:, None] * ly + pose[:, None, 1]
-    pos = np.stack([x, y, scene.prims.pos[..., 2]], -1)
-    return pose, pos, scene.prims.yaw + pose[:, None, 2], scene.prims.on & scene.on[:, None]
-
-
-def reference_footprints(tpl, scene, time, origin, heading, grid) -> np.ndarray:
-    """Numpy re-derivation of ``labels.footprints`` (one scene): bool [S, H, W]."""
-    from indoorbev_sim import objects
-
-    _, pos, yaw, on = _np_world_prims(scene, time)
-    h, w = grid.shape
-    xs = grid.x_range[0] + (np.arange(w) + 0.5) * grid.cell_size
-    ys = grid.y_range[0] + (np.arange(h) + 0.5) * grid.cell_size
-    gx, gy = np.meshgrid(xs, ys)  # [H, W]
-    c, s = np.cos(heading), np.sin(heading)
-    out = np.zeros((tpl.num_slots, h, w), bool)
-    eps = 1e-6
-    for si in range(tpl.num_slots):
-        for p, kind in enumerate(objects.CLASSES[tpl.slot_class[si]].prims):
-            if not on[si, p]:
-                continue
-            dxw, dyw = pos[si, p, 0] - origin[0], pos[si, p, 1] - origin[1]
-            cx, cy = c * dxw + s * dyw, -s * dxw + c * dyw
-            a = yaw[si, p] - heading
-            size = scene.prims.size[si, p]
-            along = np.cos(a) * (gx - cx) + np.sin(a) * (gy - cy)
-            across = -np.sin(a) * (gx - cx) + np.cos(a) * (gy - cy)
-            lo = grid.cell_size / 2  # thin parts widened to one cell (labels.footprints)
-            if kind == "box":
-                m = np.abs(along) <= max(size[0], lo) + eps
-                m &= np.abs(across) <= max(size[1], lo) + eps
-            elif kind == "hcyl":
-                m = np.abs(along) <= max(size[1], lo) + eps
-                m &= np.abs(across) <= max(size[0], lo) + eps
-            elif kind == "ellipsoid":
-                a, b = max(size[0], lo) + eps, max(size[1], lo) + eps
-                m = (along / a) ** 2 + (across / b) ** 2 <= 1
-            else:  # sphere, upright cylinder, capsule: distance to the projected axis
-                half = size[1] * np.sin(scene.prims.pitch[si, p]) if kind == "capsule" else 0.0
-                t = np.clip(along, -abs(half), abs(half))
-                m = (along - t) ** 2 + across**2 <= (max(size[0], lo) + eps) ** 2
-            out[si] |= m
-    return out
-
-
-def reference_frame(
-    config: Config, scene, time: float, directions: np.ndarray, rng: np.random.Generator
-) -> dict[str, np.ndarray]:
-    """The plain sequential pipeline for one frame: MuJoCo ``mj_multiRay`` + numpy.
-
-    Same scene and rays as ``simulate`` (``scene`` a numpy ``Scene`` of one scene), noise
-    drawn from ``rng``; labels derived with numpy (``reference_footprints``).
-
-    Returns:
-      dict: points [R, 4], valid [R] (the returns the cloud keeps), geom_id [R], distance [R],
-      point_slot [R], and per
-      slot (S): masks [S, H, W], num_points, visibility, labelled, pos, dims, yaw.
-    """
-    sim, grid = config.sim, config.grid
-    tpl = scenes_mod.template_for(config)
-    size, xpos, xmat, refl = (np.asarray(x) for x in _geom_state_jit(config)(scene, time))
-    pose, _, _, _ = _np_world_prims(scene, time)
-    origin = np.array([*(scene.ego[:2] + scene.ego_velocity * time), scene.sensor_height])
-    heading = float(scene.ego[2])
-    tilt = mount_rotation(sim, scene)
-    tilt = np.eye(3) if tilt is None else np.asarray(tilt, np.float64)
-    rot = np.asarray(_yaw_matrix(jnp.float32(heading)), np.float64) @ tilt  # world <- lidar
-    world_dirs = directions @ rot.T
-    dist, gid = reference_cast(tpl, size, xpos, xmat, origin, world_dirs, sim.max_range)
-    hit = gid >= 0
-    measured = dist + sim.range_noise * rng.standard_normal(len(dist))
-    valid = hit & (rng.random(len(dist)) >= sim.dropout)
-    valid &= (measured >= sim.min_range) & (measured <= sim.max_range)
-    xyz = directions * measured[:, None] @ tilt.T  # levelled
-    g = grid
-    valid &= (xyz[:, 0] >= g.x_range[0]) & (xyz[:, 0] <= g.x_range[1])
-    valid &= (xyz[:, 1] >= g.y_range[0]) & (xyz[:, 1] <= g.y_range[1])
-    valid &= (xyz[:, 2] >= g.z_range[0]) & (xyz[:, 2] <= g.z_range[1])
-    point_slot = np.where(hit, tpl.geom_slot[np.maximum(gid, 0)], -1)
-    # Of more than data.max_points returns, the evenly spread ones the cloud keeps.
-    kept = np.flatnonzero(valid)
-    n = config.data.max_points
-    if len(kept) > n:
-        kept = kept[np.arange(n, dtype=np.int64) * len(kept) // n]
-    valid = np.zeros_like(valid)
-    valid[kept] = True
-    s = tpl.num_slots
-    counts = np.bincount(point_slot[valid & (point_slot >= 0)], minlength=s)[:s]
-    # Visibility rays at primitive centres.
-    _, ppos, _, pon = _np_world_prims(scene, time)
-    to = ppos.reshape(-1, 3) - origin
-    vd = to / np.maximum(np.linalg.norm(to, axis=-1, keepdims=True), 1e-9)
-    vdist, vg = reference_cast(tpl, size, xpos, xmat, origin, vd, sim.max_range)
-    elevation = np.arcsin(np.clip((vd @ rot)[:, 2], -1, 1))  # the sensor frame's
-    pattern = make_pattern(sim)
-    lo, hi = _elevation_limits(pattern)
-    fired = (vg >= 0) & (elevation >= lo - 1e-6) & (elevation <= hi + 1e-6)
-    fired &= vdist >= sim.min_range
-    vslot = np.where(fired, tpl.geom_slot[np.maximum(vg, 0)], -1).reshape(s, -1)
-    seen = (vslot == np.arange(s)[:, None]) & pon
-    visibility = seen.sum(-1) / np.maximum(pon.sum(-1), 1)
-    c, sn = np.cos(heading), np.sin(heading)
-    d = pose[:, :2] - origin[:2]
-    pos = np.stack(
-        [c * d[:, 0] + sn * d[:, 1], -sn * d[:, 0] + c * d[:, 1],
-         scene.prims.dims[:, 2] / 2 - origin[2]], -1
-    )  # fmt: skip
-    inside = (pos[:, 0] >= g.x_range[0]) & (pos[:, 0] <= g.x_range[1])
-    inside &= (pos[:, 1] >= g.y_range[0]) & (pos[:, 1] <= g.y_range[1])
-    return {
-        "points": np.concatenate([xyz, np.zeros((len(xyz), 1))], -1) * valid[:, None],
-        "valid": valid,
-        "geom_id": gid,
-        "distance": dist,
-        "point_slot": point_slot,
-        "masks": reference_footprints(tpl, scene, time, origin, heading, grid),
-        "num_points": counts,
-        "visibility": visibility,
-        "labelled": scene.on & inside & (counts >= sim.min_points),
-        "pos": pos,
-        "dims": scene.prims.dims,
-        "yaw": (pose[:, 2] - heading + np.pi) % (2 * np.pi) - np.pi,
-        "reflectivity": refl,
-    }
-
-
-def _elevation_limits(pattern) -> tuple[float, float]:
-    """(lowest, highest) ray elevation of a full-turn pattern, radians (the reference's own
-    reading of the pattern's settings, apart from ``covers``)."""
-    if hasattr(pattern, "elevations_deg"):
-        lo, hi = min(pattern.elevations_deg), max(pattern.elevations_deg)
-    else:
-        lo, hi = pattern.elevation_min_deg, pattern.elevation_max_deg
-    return float(np.deg2rad(lo)), float(np.deg2rad(hi))
-
-
-@functools.lru_cache(maxsize=4)
-def _geom_state_jit(config: Config):
-    tpl = scenes_mod.template_for(config)
-    return jax.jit(functools.partial(scenes_mod.geom_state, tpl))

@@ -34,11 +34,19 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 from indoorbev_sim import objects
-from indoorbev_sim.scenes import Scene, SceneTemplate, world_prims
+from indoorbev_sim.scenes import (
+    OBJECT_SCALE_JITTER,
+    Scene,
+    SceneTemplate,
+    object_poses,
+    world_prims,
+)
 
+from indoorbev_jax.checks import check_seed, check_whole
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data.rasterize import BOUNDARY_EPS
 from indoorbev_jax.geometry import cell_centers, on_grid, wrap_angle
+from indoorbev_jax.interrupts import check_interrupted
 
 VISIBLE_FULL, VISIBLE_PART = 0.75, 0.4  # visibility thresholds of occlusion levels 0 and 1
 
@@ -64,46 +72,6 @@ class ObjectLabels:
     visibility: jax.Array
     occlusion: jax.Array
     labelled: jax.Array
-
-
-def stadium_masks(p0: jax.Array, p1: jax.Array, radius: jax.Array, grid: GridConfig) -> jax.Array:
-    """Cells whose centre lies within ``radius`` of the segment p0-p1 (a disc if p0 == p1).
-
-    Args:
-      p0, p1: float [N, 2]; radius: float [N].
-
-    Returns:
-      bool [N, H, W].
-    """
-    xs, ys = cell_centers(grid)
-    ab = p1 - p0  # [N, 2]
-    dx = xs[None, None, :] - p0[:, 0, None, None]  # [N, 1, W]
-    dy = ys[None, :, None] - p0[:, 1, None, None]  # [N, H, 1]
-    len2 = jnp.maximum(jnp.sum(ab * ab, -1), 1e-12)[:, None, None]
-    t = jnp.clip((dx * ab[:, 0, None, None] + dy * ab[:, 1, None, None]) / len2, 0.0, 1.0)
-    ex = dx - t * ab[:, 0, None, None]  # [N, H, W]
-    ey = dy - t * ab[:, 1, None, None]
-    r = radius[:, None, None] + BOUNDARY_EPS
-    return ex * ex + ey * ey <= r * r
-
-
-def ellipse_masks(centre: jax.Array, axes: jax.Array, yaw: jax.Array, grid: GridConfig):
-    """Cells whose centre lies inside the ellipse (semi-axes ``axes`` along yaw and across).
-
-    Args:
-      centre: float [N, 2]; axes: float [N, 2] (> 0); yaw: float [N].
-
-    Returns:
-      bool [N, H, W].
-    """
-    xs, ys = cell_centers(grid)
-    dx = xs[None, None, :] - centre[:, 0, None, None]  # [N, 1, W]
-    dy = ys[None, :, None] - centre[:, 1, None, None]  # [N, H, 1]
-    c, s = jnp.cos(yaw)[:, None, None], jnp.sin(yaw)[:, None, None]
-    a = axes[:, 0, None, None] + BOUNDARY_EPS
-    b = axes[:, 1, None, None] + BOUNDARY_EPS
-    along, across = c * dx + s * dy, -s * dx + c * dy  # [N, H, W]
-    return (along / a) ** 2 + (across / b) ** 2 <= 1.0
 
 
 def _kind_table(tpl: SceneTemplate) -> np.ndarray:
@@ -157,8 +125,6 @@ def _prim_masks(kind, dx, dy, yaw, size, pitch, is_hcyl, cell):
 @functools.lru_cache(maxsize=8)
 def footprint_reach(bank_per_variant: int, cell: float) -> float:
     """Largest distance from an object's centre to any cell its footprint can mark (m)."""
-    from indoorbev_sim.scenes import OBJECT_SCALE_JITTER
-
     dims = objects.object_bank(bank_per_variant).dims  # [C, V, K, 3]
     half_diag = float(np.hypot(dims[..., 0], dims[..., 1]).max()) / 2
     return half_diag * (1 + OBJECT_SCALE_JITTER) + cell + 0.05
@@ -177,8 +143,6 @@ def footprints(
     Returns:
       bool [S, H, W]; all False for slots that hold no object.
     """
-    from indoorbev_sim.scenes import object_poses
-
     pos, yaw, pitch, on = world_prims(scene, time)  # [S, P, 3], [S, P] x 3
     xy = to_lidar(pos[..., :2], origin, heading)  # [S, P, 2]
     yaw = yaw - heading
@@ -222,10 +186,8 @@ def footprints(
     return paste(out, i0, j0)[:, k : k + h, k : k + w]  # [S, H, W]
 
 
-def box_labels(tpl: SceneTemplate, scene: Scene, time, origin, heading):
+def box_labels(scene: Scene, time, origin, heading):
     """Boxes of every slot in the lidar frame: pos [S, 3], dims [S, 3], yaw [S]."""
-    from indoorbev_sim.scenes import object_poses
-
     pose = object_poses(scene, time)  # [S, 3]
     xy = to_lidar(pose[:, :2], origin, heading)
     z = scene.prims.dims[:, 2] / 2 - origin[2]
@@ -233,7 +195,7 @@ def box_labels(tpl: SceneTemplate, scene: Scene, time, origin, heading):
     return pos, scene.prims.dims, wrap_angle(pose[:, 2] - heading)
 
 
-def visibility_targets(tpl: SceneTemplate, scene: Scene, time) -> tuple[jax.Array, jax.Array]:
+def visibility_targets(scene: Scene, time) -> tuple[jax.Array, jax.Array]:
     """World centres [S * P, 3] of all primitives (rays aim at them) and which are on."""
     pos, _, _, on = world_prims(scene, time)
     return pos.reshape(-1, 3), on.reshape(-1)  # [S * P, 3], [S * P]
@@ -284,7 +246,7 @@ def object_labels(
     own = jnp.arange(s)[:, None]
     seen = (vis_slot.reshape(s, -1) == own) & prim_on  # [S, P]
     visibility = seen.sum(-1) / jnp.maximum(prim_on.sum(-1), 1)
-    pos, dims, yaw = box_labels(tpl, scene, time, origin, heading)
+    pos, dims, yaw = box_labels(scene, time, origin, heading)
     inside = on_grid(pos[:, 0], pos[:, 1], grid)
     labelled = scene.on & inside & (counts >= config.sim.min_points)
     return ObjectLabels(
@@ -375,8 +337,6 @@ def check(config: Config, frames: int, batch_size: int, seed: int, split: str = 
         one in [0, 2**32) (named).
     """
     import time
-
-    from indoorbev_jax.cli import check_interrupted, check_seed, check_whole
 
     check_whole("frames", frames, 1)
     check_whole("batch_size", batch_size, 1)

@@ -74,7 +74,7 @@ def test_a_tilted_lidar_publishes_in_its_own_frame_and_the_truth_in_the_level_on
     import dataclasses
 
     import numpy as np
-    from indoorbev_sim import generate
+    from indoorbev_sim import generate, reference
     from indoorbev_sim.ros2 import frame_messages, scene_frames
 
     from indoorbev_jax.config import Config
@@ -94,7 +94,7 @@ def test_a_tilted_lidar_publishes_in_its_own_frame_and_the_truth_in_the_level_on
     raw = pointcloud2_to_points(cloud)
     np.testing.assert_allclose(mount.levelled(raw), points, atol=1e-5)
     hit = np.abs(raw[:, :3]).sum(1) > 0
-    lo, hi = np.degrees(generate._elevation_limits(generate.make_pattern(config.sim)))
+    lo, hi = np.degrees(reference.elevation_limits(generate.make_pattern(config.sim)))
     el = np.degrees(np.arctan2(raw[hit, 2], np.linalg.norm(raw[hit, :2], axis=1)))
     assert hit.sum() > 100 and el.min() >= lo - 0.5 and el.max() <= hi + 0.5
     level = np.degrees(np.arctan2(points[hit, 2], np.linalg.norm(points[hit, :2], axis=1)))

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from indoorbev_sim import generate, labels, objects, scenes
+from indoorbev_sim import generate, labels, objects, reference, scenes
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -37,8 +37,8 @@ def frames():
         pattern = generate.make_pattern(CFG.sim).frame(int(info.frame_index[0]))
         dirs = np.asarray(pattern.directions, np.float64)
         refs = [
-            generate.reference_frame(
-                CFG, generate.scene_numpy(info.scene, b), float(info.time[b]), dirs,
+            reference.reference_frame(
+                CFG, reference.scene_numpy(info.scene, b), float(info.time[b]), dirs,
                 np.random.default_rng(0),
             )
             for b in range(B)
@@ -92,14 +92,14 @@ def test_a_tilted_lidar_sees_its_own_coverage_and_delivers_a_level_cloud(rpy, ji
     batch, info = jax.tree.map(np.asarray, generate.jitted_generate(cfg, "train", 2)(KEY))
     pattern = generate.make_pattern(cfg.sim)
     dirs = np.asarray(pattern.frame(int(info.frame_index[0])).directions, np.float64)
-    lo, hi = np.degrees(generate._elevation_limits(pattern))
+    lo, hi = np.degrees(reference.elevation_limits(pattern))
     if jitter:  # two different tilts, neither the nominal one, within the jitter
         offsets = np.linalg.norm(info.scene.sensor_rpy[:, :2] - rpy[:2], axis=1)
         assert np.all((offsets > 0.5) & (offsets <= jitter)), info.scene.sensor_rpy
     for b in range(2):
-        scene = generate.scene_numpy(info.scene, b)
+        scene = reference.scene_numpy(info.scene, b)
         rng = np.random.default_rng(0)
-        ref = generate.reference_frame(cfg, scene, float(info.time[b]), dirs, rng)
+        ref = reference.reference_frame(cfg, scene, float(info.time[b]), dirs, rng)
         v = batch.targets.valid[b]
         np.testing.assert_array_equal(info.slot[b][v], np.flatnonzero(ref["labelled"]))
         np.testing.assert_allclose(info.visibility[b][v], ref["visibility"][info.slot[b][v]])
@@ -243,13 +243,13 @@ FINE = GridConfig(x_range=(-2.0, 2.0), y_range=(-2.0, 2.0), cell_size=0.01)
 
 def test_round_footprints_have_their_analytic_area():
     cell = FINE.cell_size**2
-    disc = labels.stadium_masks(jnp.zeros((1, 2)), jnp.zeros((1, 2)), jnp.array([0.6]), FINE)
+    disc = reference.stadium_masks(jnp.zeros((1, 2)), jnp.zeros((1, 2)), jnp.array([0.6]), FINE)
     assert disc.sum() * cell == pytest.approx(math.pi * 0.36, rel=0.01)
     seg = jnp.array([[-0.5, 0.2]]), jnp.array([[0.7, -0.3]])
-    stad = labels.stadium_masks(*seg, jnp.array([0.25]), FINE)
+    stad = reference.stadium_masks(*seg, jnp.array([0.25]), FINE)
     length = float(jnp.linalg.norm(seg[1] - seg[0]))
     assert stad.sum() * cell == pytest.approx(math.pi * 0.0625 + 0.5 * length, rel=0.01)
-    ell = labels.ellipse_masks(
+    ell = reference.ellipse_masks(
         jnp.array([[0.3, -0.2]]), jnp.array([[0.9, 0.4]]), jnp.array([0.7]), FINE
     )
     assert ell.sum() * cell == pytest.approx(math.pi * 0.36, rel=0.01)
@@ -266,7 +266,7 @@ def _single_object_scene(class_name: str, variant: str):
         pose=np.zeros((1, 3)), velocity=np.zeros((1, 2)), prims=prims, on=on
     )
     tpl = types.SimpleNamespace(num_slots=1, slot_class=np.array([c]))
-    fp = generate.reference_footprints(tpl, scene, 0.0, np.zeros(3), 0.0, FINE)[0]
+    fp = reference.reference_footprints(tpl, scene, 0.0, np.zeros(3), 0.0, FINE)[0]
     return fp, prims
 
 
@@ -381,8 +381,8 @@ def test_reference_frame_labels_objects_on_a_workspace_not_centred_on_the_sensor
     dirs = np.asarray(generate.make_pattern(cfg.sim).frame(int(info.frame_index[0])).directions)
     far_back = 0
     for b in range(8):
-        ref = generate.reference_frame(
-            cfg, generate.scene_numpy(info.scene, b), float(info.time[b]),
+        ref = reference.reference_frame(
+            cfg, reference.scene_numpy(info.scene, b), float(info.time[b]),
             dirs.astype(np.float64), np.random.default_rng(0),
         )  # fmt: skip
         slots = info.slot[b][batch.targets.valid[b]]
@@ -415,7 +415,7 @@ def test_pipeline_ellipses_and_discs_have_their_analytic_footprints():
     assert (ell != inside).sum() <= 4  # cells on the boundary only
     assert ell[(np.abs(along - 0.8) < 0.01) & (np.abs(across) < 0.01)].all()
     assert not ell[(np.abs(across - 0.5) < 0.01) & (np.abs(along) < 0.01)].any()
-    ref = labels.ellipse_masks(jnp.asarray(c[None]), jnp.asarray(size[:, :2]), jnp.array([yaw]),
+    ref = reference.ellipse_masks(jnp.asarray(c[None]), jnp.asarray(size[:, :2]), jnp.array([yaw]),
                                FINE)  # fmt: skip
     np.testing.assert_array_equal(ell, np.asarray(ref)[0])
     # Upright cylinder (radius 0.6): a disc; a capsule of half length 0.5 lying along yaw
@@ -492,7 +492,7 @@ def test_exactly_min_points_returns_make_a_target(drawn):
         sc = jax.tree.map(lambda x, b=b: x[b], scene_b)
         t = time_b[b]
         origin, heading = scenes.sensor_pose(sc, t)
-        pos, _, _ = labels.box_labels(tpl, sc, t, origin, heading)
+        pos, _, _ = labels.box_labels(sc, t, origin, heading)
         grid_in = np.asarray(on_grid(pos[:, 0], pos[:, 1], CFG.grid))
         on = np.asarray(sc.on)
         ins, outs = np.flatnonzero(grid_in & on), np.flatnonzero(~grid_in & on)
@@ -521,8 +521,8 @@ def test_visibility_rays_inside_min_range_are_not_fired():
     dirs = generate.make_pattern(cfg.sim).frame(int(info.frame_index[0])).directions
     n = 0
     for b in range(B):
-        ref = generate.reference_frame(
-            cfg, generate.scene_numpy(info.scene, b), float(info.time[b]),
+        ref = reference.reference_frame(
+            cfg, reference.scene_numpy(info.scene, b), float(info.time[b]),
             np.asarray(dirs, np.float64), np.random.default_rng(0),
         )  # fmt: skip
         v = batch.targets.valid[b]
