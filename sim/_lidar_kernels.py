@@ -8,6 +8,9 @@ discriminants written in a cancellation-free form (distance of the ray to the ce
 distances agree with MuJoCo's float64 to ~1e-6 m away from grazing incidence.
 
 All arrays carry a leading scene axis B so one launch serves a batch of scenes.
+The kernels group their parameters as ``# Model:`` (the scene's geoms: types and sizes, and
+their poses and cull data in the lidar frame of this frame, since the lidar moves), ``# In:``
+(the rays and the cube map's fixed cells) and ``# Out:``.
 
 Acceleration ("sensor-centric cube map"): all rays of one scene share one origin (a lidar),
 so the build kernel bins ray *directions* into the 6 * N * N cells of a cube map and, per
@@ -53,7 +56,7 @@ BOUND_ABS = wp.constant(rc.BOUND_ABS)
 
 
 @wp.func
-def _quad_first(a: float, b: float, c: float, perp2: float, r2: float) -> float:
+def _quad_first(a: float, b: float, perp2: float, r2: float) -> float:
     """Smallest root >= 0 of a x^2 + 2 b x + c = 0, as MuJoCo's ray_quad; -1 if none.
 
     The discriminant b^2 - a c equals a (r2 - perp2), perp2 being the squared distance of the
@@ -82,8 +85,7 @@ def _perp2_3(p: wp.vec3, v: wp.vec3, a: float, b: float) -> float:
 def _ray_sphere(p: wp.vec3, v: wp.vec3, r: float) -> float:
     a = wp.dot(v, v)
     b = wp.dot(v, p)
-    c = wp.dot(p, p) - r * r
-    return _quad_first(a, b, c, _perp2_3(p, v, a, b), r * r)
+    return _quad_first(a, b, _perp2_3(p, v, a, b), r * r)
 
 
 @wp.func
@@ -106,8 +108,7 @@ def _ray_ellipsoid(p: wp.vec3, v: wp.vec3, size: wp.vec3) -> float:
     vs = wp.cw_div(v, size)
     a = wp.dot(vs, vs)
     b = wp.dot(vs, ps)
-    c = wp.dot(ps, ps) - 1.0
-    return _quad_first(a, b, c, _perp2_3(ps, vs, a, b), 1.0)
+    return _quad_first(a, b, _perp2_3(ps, vs, a, b), 1.0)
 
 
 @wp.func
@@ -115,12 +116,11 @@ def _ray_side(p: wp.vec3, v: wp.vec3, r: float, h: float) -> float:
     """Round side of a z-aligned cylinder of radius r, half-height h (first root only)."""
     a = v[0] * v[0] + v[1] * v[1]
     b = v[0] * p[0] + v[1] * p[1]
-    c = p[0] * p[0] + p[1] * p[1] - r * r
     if a < MINVAL:
         return -1.0  # parallel to the axis: MuJoCo's discriminant is 0 < mjMINVAL
     qx = p[0] - (b / a) * v[0]
     qy = p[1] - (b / a) * v[1]
-    sol = _quad_first(a, b, c, qx * qx + qy * qy, r * r)
+    sol = _quad_first(a, b, qx * qx + qy * qy, r * r)
     if sol >= 0.0 and wp.abs(p[2] + sol * v[2]) <= h:
         return sol
     return -1.0
@@ -511,7 +511,6 @@ def _cast_ray(
     # In:
     dirs: wp.array2d(dtype=wp.vec3),
     max_range: wp.array(dtype=float),
-    cells_per_edge: int,
     # Out:
     dist_out: wp.array2d(dtype=float),
     geom_out: wp.array2d(dtype=int),
@@ -578,8 +577,7 @@ def cast_binned(
     for r in range(q * rays_per_thread, wp.min((q + 1) * rays_per_thread, dirs.shape[1])):
         k = dir_cell(dirs[s, r], cells_per_edge)
         _cast_ray(s, r, k, geom_type, geom_size, geom_mat, geom_local, geom_enabled, cand_geom,
-                  cand_t, cand_n, cand_drop, dirs, max_range, cells_per_edge, dist_out,
-                  geom_out)  # fmt: skip
+                  cand_t, cand_n, cand_drop, dirs, max_range, dist_out, geom_out)  # fmt: skip
 
 
 @wp.kernel
@@ -635,7 +633,7 @@ def build_and_cast_cpu(
                         cand_drop_out)  # fmt: skip
         _cast_ray(s, r, k, geom_type, geom_size, geom_mat, geom_local, geom_enabled,
                   cand_geom_out, cand_t_out, cand_n_out, cand_drop_out, dirs, max_range,
-                  cells_per_edge, dist_out, geom_out)  # fmt: skip
+                  dist_out, geom_out)  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- CPU threads

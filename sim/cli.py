@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from indoorbev_jax.cli import (
-    INTERRUPTED,
     HelpFormatter,
     RawHelpFormatter,
     exit_with,
@@ -32,6 +31,7 @@ from indoorbev_jax.cli import (
     rpy_argument,
     seed_int,
 )
+from indoorbev_jax.interrupts import INTERRUPTED
 
 if TYPE_CHECKING:  # JAX loads in main, where Ctrl-C is caught (status 130, one line)
     from indoorbev_jax.config import Config
@@ -82,7 +82,7 @@ def _add_set(parser: argparse.ArgumentParser, example: str) -> None:
                         help=f"override a config field (repeatable), {example}")  # fmt: skip
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="indoorbev-sim",
         description=__doc__.split("\n\n")[0],
@@ -121,6 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     ex.add_argument("--no-progress", action="store_true", help="no progress bar")
     ex.add_argument("--throttle", type=float, default=0.0, help="seconds to pause after each scene")
     ex.add_argument("--cache", default=default_cache, help=cache_help)
+    ex.set_defaults(run=_run_export)
 
     sh = sub.add_parser(
         "show",
@@ -134,6 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     sh.add_argument("--ids", nargs="*", default=None, help="frame ids (default: all)")
     sh.add_argument("--preset", default=None, help=preset_help)
     _add_set(sh, 'e.g. for your own class names --set \'data.class_map={"Desk": "Table"}\'')
+    sh.set_defaults(run=_run_show)
 
     ck = sub.add_parser(
         "check",
@@ -158,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     _add_set(ck, "e.g. 'sim.sensor_rpy=[0,20,0]'")
     ck.add_argument("--noise-free", action="store_true", help="no range noise or dropout")
     ck.add_argument("--cache", default=default_cache, help=cache_help)
+    ck.set_defaults(run=_run_check)
 
     ros2 = sub.add_parser(
         "ros2",
@@ -213,57 +216,72 @@ def main(argv: list[str] | None = None) -> int:
     pb.add_argument("--cache", default=default_cache, help=cache_help)
     pb.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[],
                     help="the rest goes to rclpy (remappings, log levels)")  # fmt: skip
+    pb.set_defaults(run=_run_publish)
+    return parser
 
-    args = parser.parse_args(join_negative_values(argv))
+
+def _run_export(args: argparse.Namespace, cfg: Config) -> int:
+    from indoorbev_sim.export import export
+
+    _use_cache(args.cache)
+    splits = export(args.out, args.frames, args.seed, cfg, args.rosbag,
+                    progress=not args.no_progress, throttle=args.throttle)  # fmt: skip
+    print(" ".join(f"{k}={len(v)}" for k, v in splits.items()))
+    empty = [k for k, v in splits.items() if not v]
+    if empty:  # scene j goes to test when j % 10 == 9, to val when j % 10 == 8
+        per_scene = cfg.sim.frames_per_sequence
+        print(f"note: no {' or '.join(empty)} frames: scene j goes to val when "
+              f"j % 10 == 8 and to test when j % 10 == 9 ({per_scene} frames a "
+              f"scene), so --frames >= {10 * per_scene} gives every split",
+              file=sys.stderr)  # fmt: skip
+    return 0
+
+
+def _run_show(args: argparse.Namespace, cfg: Config) -> int:
+    from indoorbev_sim.show import show
+
+    written = show(args.root, args.out, cfg, args.ids)
+    print(f"wrote {len(written)} pictures to {args.out}")
+    return 0
+
+
+def _run_check(args: argparse.Namespace, cfg: Config) -> int:
+    from indoorbev_sim.labels import check
+
+    _use_cache(args.cache)
+    print(check(cfg, args.frames, args.batch, args.seed, args.split))
+    return 0
+
+
+def _run_publish(args: argparse.Namespace, cfg: Config) -> int:
+    from indoorbev_sim.ros2 import publish
+
+    from indoorbev_jax.ros2 import RosUnavailable
+
+    _use_cache(args.cache)
+    try:
+        publish(cfg, args.rate, args.frames, args.topic, args.objects_topic,
+                args.frame_id, args.seed, args.split, args.record, args.storage,
+                args.wait_subscribers, args.wait_timeout, args.ros_args,
+                args.lidar_rpy, args.level_frame)  # fmt: skip
+    except RosUnavailable as e:
+        print(f"indoorbev-sim: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:  # before the node runs; afterwards it stops cleanly
+        print("indoorbev-sim: interrupted", file=sys.stderr)
+        return INTERRUPTED
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(join_negative_values(argv))
     try:
         if args.command == "show":
             _check_show_root(Path(args.root), args.ids)
-        cfg = _config(args)
-        if args.command == "export":
-            from indoorbev_sim.export import export
-
-            _use_cache(args.cache)
-            splits = export(args.out, args.frames, args.seed, cfg, args.rosbag,
-                            progress=not args.no_progress, throttle=args.throttle)  # fmt: skip
-            print(" ".join(f"{k}={len(v)}" for k, v in splits.items()))
-            empty = [k for k, v in splits.items() if not v]
-            if empty:  # scene j goes to test when j % 10 == 9, to val when j % 10 == 8
-                per_scene = cfg.sim.frames_per_sequence
-                print(f"note: no {' or '.join(empty)} frames: scene j goes to val when "
-                      f"j % 10 == 8 and to test when j % 10 == 9 ({per_scene} frames a "
-                      f"scene), so --frames >= {10 * per_scene} gives every split",
-                      file=sys.stderr)  # fmt: skip
-        elif args.command == "show":
-            from indoorbev_sim.show import show
-
-            written = show(args.root, args.out, cfg, args.ids)
-            print(f"wrote {len(written)} pictures to {args.out}")
-        elif args.command == "ros2":
-            from indoorbev_sim.ros2 import publish
-
-            from indoorbev_jax.ros2 import RosUnavailable
-
-            _use_cache(args.cache)
-            try:
-                publish(cfg, args.rate, args.frames, args.topic, args.objects_topic,
-                        args.frame_id, args.seed, args.split, args.record, args.storage,
-                        args.wait_subscribers, args.wait_timeout, args.ros_args,
-                        args.lidar_rpy, args.level_frame)  # fmt: skip
-            except RosUnavailable as e:
-                print(f"indoorbev-sim: error: {e}", file=sys.stderr)
-                return 2
-            except KeyboardInterrupt:  # before the node runs; afterwards it stops cleanly
-                print("indoorbev-sim: interrupted", file=sys.stderr)
-                return INTERRUPTED
-        else:
-            from indoorbev_sim.labels import check
-
-            _use_cache(args.cache)
-            print(check(cfg, args.frames, args.batch, args.seed, args.split))
+        return args.run(args, _config(args))
     except (ValueError, RuntimeError, OSError) as e:
         print(f"indoorbev-sim: error: {e}", file=sys.stderr)
         return 2
-    return 0
 
 
 def entry() -> None:

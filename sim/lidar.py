@@ -171,7 +171,7 @@ def scene_geometry(
 
     gtype = jnp.broadcast_to(jnp.asarray(geom_type)[None], (nscene, ngeom))
     ext, rbound = _bounds(geom_type, size)
-    front = jnp.broadcast_to(jnp.asarray(geom_type == 0, jnp.int32)[None], (nscene, ngeom))
+    front = jnp.broadcast_to(jnp.asarray(geom_type == rc.PLANE, jnp.int32)[None], (nscene, ngeom))
     return SceneGeometry(
         geom_type=gtype,
         size=size,
@@ -195,7 +195,7 @@ def _bounds(geom_type: np.ndarray, size: jax.Array) -> tuple[jax.Array, jax.Arra
         [jnp.where(r > 0, r, big), jnp.where(h > 0, h, big), jnp.zeros_like(r)], axis=-1
     )
     ext = jnp.select(
-        [t == 0, t == 2, t == 3, t == 5],
+        [t == rc.PLANE, t == rc.SPHERE, t == rc.CAPSULE, t == rc.CYLINDER],
         [
             plane,
             jnp.stack([r, r, r], -1),
@@ -206,7 +206,7 @@ def _bounds(geom_type: np.ndarray, size: jax.Array) -> tuple[jax.Array, jax.Arra
     )
     tt = t[..., 0]
     rbound = jnp.select(
-        [tt == 2, tt == 3, tt == 4],
+        [tt == rc.SPHERE, tt == rc.CAPSULE, tt == rc.ELLIPSOID],
         [r, r + h, jnp.max(size, axis=-1)],
         jnp.linalg.norm(jnp.minimum(ext, 1.0e6), axis=-1),  # box, cylinder, finite plane
     )
@@ -564,8 +564,9 @@ def _cast_jax(geo: SceneGeometry, dirs, origin, max_range):
         return _lidar_jax.cast(*fields, dirs, max_range, geo.types)
     nchunk = -(-nray // chunk)
     padded = jnp.pad(dirs, ((0, 0), (0, nchunk * chunk - nray), (0, 0)), constant_values=1.0)
-    pieces = padded.reshape(nscene, nchunk, chunk, 3).transpose(1, 0, 2, 3)
+    pieces = padded.reshape(nscene, nchunk, chunk, 3).transpose(1, 0, 2, 3)  # [K, B, chunk, 3]
     dist, gid = jax.lax.map(lambda d: _lidar_jax.cast(*fields, d, max_range, geo.types), pieces)
+    # [K, B, chunk] -> [B, R]
     unchunk = lambda x: x.transpose(1, 0, 2).reshape(nscene, -1)[:, :nray]  # noqa: E731
     return unchunk(dist), unchunk(gid)
 
@@ -743,7 +744,7 @@ def surface_normals(geo: SceneGeometry, points: jax.Array, geom_id: jax.Array) -
     capsule = p - ez * jnp.clip(p[..., 2:3], -h, h)
     t = gtype[..., None]
     n = jnp.select(
-        [t == 0, t == 2, t == 3, t == 4, t == 5],
+        [t == rc.PLANE, t == rc.SPHERE, t == rc.CAPSULE, t == rc.ELLIPSOID, t == rc.CYLINDER],
         [ez, sphere, capsule, ellipsoid, cylinder],
         box,
     )

@@ -35,8 +35,11 @@ from flax import struct
 MAX_PRIMS = 8  # primitive slots per object (P)
 NUM_UNIFORMS = 8  # random numbers that shape one object
 
-# MuJoCo geom type of each primitive kind (mjtGeom values).
-GEOM_TYPE = {"box": 6, "cyl": 5, "hcyl": 5, "capsule": 3, "sphere": 2, "ellipsoid": 4}
+# The MJCF geom type of each primitive kind (hcyl: a cylinder laid on its side by its pitch).
+MJCF_TYPE = {
+    "box": "box", "cyl": "cylinder", "hcyl": "cylinder", "capsule": "capsule",
+    "sphere": "sphere", "ellipsoid": "ellipsoid",
+}  # fmt: skip
 # Footprint rasteriser of each kind: rectangle, stadium (disc/capsule), ellipse.
 RECT, STADIUM, ELLIPSE = 0, 1, 2
 FOOTPRINT = {

@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 from flax import struct
 from indoorbev_sim import layouts, objects
-from indoorbev_sim.objects import CLASSES, MAX_PRIMS
+from indoorbev_sim.objects import CLASSES, MAX_PRIMS, MJCF_TYPE
 
 from indoorbev_jax.config import Config, SimConfig
 
@@ -157,8 +157,7 @@ def make_template(slots_per_class: tuple[int, ...]) -> SceneTemplate:
             prim_geom.append(row)
     geoms = ['<geom type="plane" size="40 40 1"/>']
     for kind in kinds[1:]:
-        mj = {"box": "box", "cyl": "cylinder", "hcyl": "cylinder", "capsule": "capsule",
-              "sphere": "sphere", "ellipsoid": "ellipsoid"}[kind]  # fmt: skip
+        mj = MJCF_TYPE[kind]
         size = {"box": ".1 .1 .1", "ellipsoid": ".1 .1 .1", "sphere": ".1"}.get(mj, ".1 .1")
         geoms.append(f'<geom type="{mj}" size="{size}" pos="0 0 {PARK_Z}"/>')
     xml = (

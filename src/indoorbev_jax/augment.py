@@ -458,7 +458,21 @@ def augment(
     database: ObjectDatabase | None = None,
 ) -> Batch:
     """The full chain on one frame: GT sampling, box noise, global transform, mask
-    perturbation, point noise."""
+    perturbation, point noise.
+
+    Args:
+      key: a ``jax.random`` key; each step draws from its own split of it.
+      frame: one unbatched ``Batch``: points [N, 4], point_valid [N], targets with M slots
+        and masks [M, H, W] on ``grid``.
+      grid: the BEV grid of the masks.
+      cfg: which augmentations run and how strongly (``config.augment``).
+      database: objects for ground-truth sampling (``build_object_database``); None or
+        ``cfg.gt_sampling`` 0 pastes none.
+
+    Returns:
+      The augmented frame, of the same shapes; targets moved out of sight are dropped
+      (``drop_lost_objects``).
+    """
     k_gt, k_box, k_glob, k_mask, k_pts = jax.random.split(key, 5)
     if database is not None and cfg.gt_sampling:
         frame = gt_sampling(k_gt, frame, database, grid, cfg)
@@ -510,6 +524,19 @@ def augment_batch(
     cfg: AugmentConfig,
     database: ObjectDatabase | None = None,
 ) -> Batch:
-    """``augment`` over a batch, one independent key per frame."""
+    """``augment`` over a batch, one independent key per frame.
+
+    Args:
+      key: a ``jax.random`` key, split into one per frame.
+      batch: a ``Batch`` with a leading axis B (points [B, N, 4], masks [B, M, H, W]).
+      grid, cfg, database: as for ``augment``.
+
+    Returns:
+      The augmented batch, of the same shapes.
+
+    Example::
+
+        batch = augment_batch(jax.random.key(0), batch, config.grid, config.augment)
+    """
     keys = jax.random.split(key, batch.points.shape[0])
     return jax.vmap(lambda k, f: augment(k, f, grid, cfg, database))(keys, batch)

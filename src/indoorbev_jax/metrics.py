@@ -482,8 +482,9 @@ def confusion_json(
 # --------------------------------------------------------------------------- panoptic
 
 
-def _segments(ids: np.ndarray, classes: np.ndarray, name: str, num_classes: int) -> np.ndarray:
-    """Validated class per id; ids absent from the map get -1 (they are not segments)."""
+def _checked_classes(ids: np.ndarray, classes: np.ndarray, name: str) -> np.ndarray:
+    """``classes`` (the class of each id, [K + 1]) as int64, once ``ids`` [H, W] and
+    ``classes`` have their shapes and every id has a class."""
     if ids.ndim != 2:
         raise ValueError(f"{name}: expected instance_ids [H, W], got shape {ids.shape}")
     if classes.ndim != 1 or classes.shape[0] < 1:
@@ -521,8 +522,8 @@ class _PanopticStats:
         gt_ids, gt_classes = (np.asarray(x) for x in gt)
         pred_ids, pred_classes = (np.asarray(x) for x in pred)
         k = self.num_classes
-        gcls = _segments(gt_ids, gt_classes, f"gts[{index}]", k)
-        pcls = _segments(pred_ids, pred_classes, f"preds[{index}]", k)
+        gcls = _checked_classes(gt_ids, gt_classes, f"gts[{index}]")
+        pcls = _checked_classes(pred_ids, pred_classes, f"preds[{index}]")
         if gt_ids.shape != pred_ids.shape:
             raise ValueError(
                 f"frame {index}: instance_ids shapes differ, {gt_ids.shape} vs {pred_ids.shape}"

@@ -33,7 +33,6 @@ import numpy as np
 
 from indoorbev_jax import viz
 from indoorbev_jax.boxes import check_box_source, segment_boxes
-from indoorbev_jax.cli import check_interrupted
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data import kitti
 from indoorbev_jax.data.clouds import SUFFIXES as CLOUD_SUFFIXES
@@ -41,6 +40,7 @@ from indoorbev_jax.data.clouds import read_cloud
 from indoorbev_jax.data.dataset import pad_points
 from indoorbev_jax.geometry import as_points, in_workspace, usable, wrap_angle
 from indoorbev_jax.inference import apply_views, panoptic_inference, unview_cells
+from indoorbev_jax.interrupts import check_interrupted
 from indoorbev_jax.models import IndoorBEV
 from indoorbev_jax.mount import LEVEL, LidarMount, check_level_frame
 
@@ -55,6 +55,21 @@ INTENSITY_UNITS = {
 }
 
 
+def check_intensity_units(units: str | float) -> None:
+    """Raises ``ValueError`` unless ``units`` is "auto", a name of ``INTENSITY_UNITS`` or a
+    finite number >= 0 (``intensity_factor``'s ``units``)."""
+    if isinstance(units, str):
+        if units != "auto" and units not in INTENSITY_UNITS:
+            raise ValueError(
+                f"intensity units {units!r}: expected 'auto', one of {sorted(INTENSITY_UNITS)} "
+                f"or a number"
+            )
+        return
+    factor = float(units)
+    if not (np.isfinite(factor) and factor >= 0):
+        raise ValueError(f"intensity factor {units!r}: expected a finite number >= 0")
+
+
 def intensity_factor(units: str | float, points: np.ndarray) -> float:
     """The factor that maps ``points``' intensity (column 3) in ``units`` onto [0, 1].
 
@@ -63,21 +78,14 @@ def intensity_factor(units: str | float, points: np.ndarray) -> float:
         when every finite intensity is at most 1, else "livox" (the MID-360's driver).
       points: float [N, 4].
     """
+    check_intensity_units(units)
     if units == "auto":
         intensity = np.asarray(points)[:, 3]
         high = np.isfinite(intensity) & (intensity > 1.0)
         return INTENSITY_UNITS["livox"] if high.any() else 1.0
     if isinstance(units, str):
-        if units not in INTENSITY_UNITS:
-            raise ValueError(
-                f"intensity units {units!r}: expected 'auto', one of {sorted(INTENSITY_UNITS)} "
-                f"or a number"
-            )
         return INTENSITY_UNITS[units]
-    factor = float(units)
-    if not (np.isfinite(factor) and factor >= 0):
-        raise ValueError(f"intensity factor {units!r}: expected a finite number >= 0")
-    return factor
+    return float(units)
 
 
 def normalize_intensity(points: np.ndarray, factor: float) -> np.ndarray:
@@ -375,7 +383,7 @@ class Predictor:
         self.params = params
         self.mount = mount
         self.z_offset = mount.z_offset(config.sim.sensor_height)
-        intensity_factor(intensity, np.zeros((0, 4), np.float32))  # bad units fail here
+        check_intensity_units(intensity)  # bad units fail here, not at the first frame
         self.intensity = intensity
         self.last_counts: dict[str, int] = {}
         self.last_intensity_factor = 1.0
@@ -630,7 +638,7 @@ def predict(
       ``max_points``, evenly spread); ``bad_frames`` lists the ids of skipped frames,
       ``empty_frames`` those with no valid point in the workspace.
     """
-    intensity_factor(intensity, np.zeros((0, 4), np.float32))  # bad units fail first
+    check_intensity_units(intensity)  # bad units fail first
     check_box_source(boxes)
     if bag_out is not None or level_frame:
         check_level_frame(mount, level_frame)

@@ -98,7 +98,7 @@ class AFPCCN(nn.Module):
         count = jax.ops.segment_sum(ok.reshape(-1).astype(jnp.float32), cell, n_cells)
         z_sum = jax.ops.segment_sum(z.reshape(-1), cell, n_cells)
         z_mean = z_sum / jnp.maximum(count, 1.0)  # [B*H*W]
-        dz = z - jnp.take(z_mean, cell, mode="fill", fill_value=0.0).reshape(b, n)
+        dz = z - jnp.take(z_mean, cell, mode="fill", fill_value=0.0).reshape(b, n)  # [B, N]
         # Offsets to the cell centre in cell units, so they stay O(1) at any cell size.
         dx = (x - (self.grid.x_range[0] + (col + 0.5) * v)) / v
         dy = (y - (self.grid.y_range[0] + (row + 0.5) * v)) / v

@@ -173,8 +173,9 @@ class KeysMajorDense(nn.Dense):
         bias = self.param("bias", self.bias_init, (self.features,), self.param_dtype)
         x, kernel, bias = nn.dtypes.promote_dtype(inputs, kernel, bias, dtype=self.dtype)
         y = jax.lax.dot_general(kernel, x.reshape(b * t, c_in), (((0,), (1,)), ((), ())))
+        # [heads * d, B * T] -> [h, d, B, T]
         y = (y + bias[:, None]).reshape(self.heads, self.features // self.heads, b, t)
-        return y.transpose(2, 0, 1, 3)
+        return y.transpose(2, 0, 1, 3)  # [B, h, d, T]
 
 
 class Attention(nn.Module):
@@ -226,7 +227,7 @@ class Attention(nn.Module):
             )
             (_, den, acc), _ = scan(self, init, k_in, v_in, key_ok, q)
             out = (acc / den[..., None]).astype(self.dtype)  # [B, h, Tq, d]
-            out = out.transpose(0, 2, 1, 3).reshape(b, tq, c)
+            out = out.transpose(0, 2, 1, 3).reshape(b, tq, c)  # [B, Tq, h * d]
             return Dense(c, dtype=self.dtype, name="out")(out)
         # Heads-major layouts with keys as [B, h, d, Tk]: with few queries, long memories
         # and d = 8, this runs the CPU train step about 2x faster than
@@ -235,7 +236,7 @@ class Attention(nn.Module):
         v = Dense(c, dtype=self.dtype, name="v")(v_in)
         q = q.reshape(b, tq, h, d).transpose(0, 2, 1, 3)  # [B, h, Tq, d]
         v = v.reshape(b, -1, h, d).transpose(0, 2, 1, 3)  # [B, h, Tk, d]
-        out = softmax_attention(q, k, v).transpose(0, 2, 1, 3).reshape(b, tq, c)
+        out = softmax_attention(q, k, v).transpose(0, 2, 1, 3).reshape(b, tq, c)  # [B, Tq, C]
         return Dense(c, dtype=self.dtype, name="out")(out)
 
 
@@ -506,6 +507,7 @@ class SimpleMaskHead(nn.Module):
         if cfg.mask_pooled_class:
             # Mean of F_proj under each query's own mask (weights without gradient, so the
             # class loss does not shape the masks): the class reads the object it outlines.
+            # [L, B, Q, H, W] -> [L, B, Q, H * W]
             weight = jax.lax.stop_gradient(jax.nn.sigmoid(masks)).reshape(n_l, b, n_q, h * w)
             pooled = jnp.einsum("lbqn,bnc->lbqc", weight, f_proj.reshape(b, h * w, c))
             pooled = pooled / (weight.sum(-1, keepdims=True) + 1.0)  # [L, B, Q, C]
@@ -532,7 +534,7 @@ class SimpleMaskHead(nn.Module):
         self.sow("intermediates", "seeds", seeds)
         return seeds
 
-    def _select_queries(self, f_proj: jax.Array) -> jax.Array:
+    def _select_queries(self, f_proj: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Two-stage query init (``query_init="select"``): queries from the top local peaks
         of a dense class head.
 

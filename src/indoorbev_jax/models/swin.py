@@ -157,7 +157,7 @@ class WindowAttention(nn.Module):
             logits = jnp.where(allowed[None, :, None], logits, _MASKED)
         weights = jax.nn.softmax(logits, axis=-1).astype(self.dtype)  # [B, nW, h, T, T]
         self.sow("intermediates", "attention_weights", weights)
-        out = jnp.einsum("bwhqk,bwkhd->bwqhd", weights, v).reshape(b, nw, t, c)
+        out = jnp.einsum("bwhqk,bwkhd->bwqhd", weights, v).reshape(b, nw, t, c)  # [B, nW, T, C]
         return Dense(c, dtype=self.dtype, name="proj")(out)
 
 
