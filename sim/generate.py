@@ -29,6 +29,7 @@ from flax import struct
 from indoorbev_sim import labels as labels_mod
 from indoorbev_sim import scenes as scenes_mod
 
+from indoorbev_jax.checks import check_whole
 from indoorbev_jax.config import Config, SimConfig
 from indoorbev_jax.data.rasterize import instance_ids_from_masks
 from indoorbev_jax.geometry import in_workspace
@@ -298,7 +299,7 @@ def sample_scenes(key: jax.Array, config: Config, num_scenes: int, split="train"
     ``split`` is "train", "val", "test", or a (possibly traced) bool meaning "test".
     """
     test = scenes_mod.split_flag(split) if isinstance(split, str) else split
-    keys = jax.random.split(key, num_scenes)
+    keys = jax.random.split(key, check_whole("num_scenes", num_scenes, 1))
     return jax.vmap(lambda k: scenes_mod.sample_scene(k, config, test))(keys)
 
 
@@ -325,7 +326,8 @@ def draw_frames(key: jax.Array, config: Config, split="train", batch_size: int |
     Returns:
       (scene ``Scene`` [B], time float32 [B], pattern frame index int32 [], noise key).
     """
-    b = config.train.batch_size if batch_size is None else batch_size
+    # Checked here: 0 failed deep in the ray cast (ZeroDivisionError), -1 in MLIR.
+    b = config.train.batch_size if batch_size is None else check_whole("batch_size", batch_size, 1)
     k_scene, k_frame, k_time, k_noise = jax.random.split(key, 4)
     scene = sample_scenes(k_scene, config, b, split)
     span = (config.sim.frames_per_sequence - 1) * config.sim.frame_dt

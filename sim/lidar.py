@@ -627,7 +627,13 @@ def cast_geometry(
     # A non-finite origin misses everything, as in mj_ray (the kernels gave NaN hits).
     castable &= jnp.isfinite(origin).all(-1)[:, None]
     origin = jnp.where(jnp.isfinite(origin), origin, 0.0)
-    mr = jnp.broadcast_to(jnp.asarray(max_range, jnp.float32).reshape(-1), (nscene,))
+    mr = jnp.asarray(max_range, jnp.float32).reshape(-1)
+    if mr.shape[0] not in (1, nscene):
+        raise ValueError(
+            f"max_range: expected a scalar or one value per scene [B] = [{nscene}], got shape "
+            f"{list(jnp.shape(max_range))}"
+        )
+    mr = jnp.broadcast_to(mr, (nscene,))
     if method == "jax":
         dist, gid = _cast_jax(geo, dirs, origin, mr)
     else:

@@ -151,6 +151,14 @@ def scan(
     directions = jnp.asarray(directions, jnp.float32)
     if directions.ndim != 2 or directions.shape[-1] != 3:
         raise ValueError(f"directions must be [R, 3] (sensor frame), got {directions.shape}")
+    for name, tail in (("pos", (3,)), ("rot", (3, 3))):
+        shape = tuple(jnp.shape(getattr(pose, name)))
+        if shape[-len(tail) :] != tail or len(shape) > len(tail) + 1:
+            note = " (a rotation matrix: pose_from_body / pose_from_site)" if name == "rot" else ""
+            raise ValueError(
+                f"pose.{name}: expected {list(tail)} or [B, {', '.join(map(str, tail))}]{note}, "
+                f"got shape {list(shape)}"
+            )
     pos = jnp.asarray(pose.pos, jnp.float32).reshape(-1, 3)
     rot = jnp.asarray(pose.rot, jnp.float32).reshape(-1, 3, 3)
     nposes = max(pos.shape[0], rot.shape[0])
@@ -174,9 +182,13 @@ def scan(
     if reflectivity is None:
         refl = jnp.full((nscene, ngeom), config.default_reflectivity, jnp.float32)
     else:
-        refl = jnp.broadcast_to(
-            jnp.asarray(reflectivity, jnp.float32).reshape(-1, ngeom), (nscene, ngeom)
-        )
+        refl = jnp.asarray(reflectivity, jnp.float32)
+        if refl.shape not in ((ngeom,), (1, ngeom), (nscene, ngeom)):
+            raise ValueError(
+                f"reflectivity: expected one value per geom, [G] or [B, G] with G = {ngeom}, "
+                f"B = {nscene}, got shape {list(refl.shape)}"
+            )
+        refl = jnp.broadcast_to(refl.reshape(-1, ngeom), (nscene, ngeom))
     intensity = jnp.take_along_axis(refl, jnp.maximum(gid, 0), axis=1) * cos_inc ** (
         config.incidence_exponent
     )

@@ -4,7 +4,7 @@ import jax
 import numpy as np
 import pytest
 
-from indoorbev_jax.config import NUM_CLASSES, InferenceConfig
+from indoorbev_jax.config import NUM_CLASSES, Config, InferenceConfig
 from indoorbev_jax.inference import panoptic_inference, panoptic_inference_from_logits
 from indoorbev_jax.types import Predictions
 
@@ -127,6 +127,11 @@ def test_jittable_inside_outer_jit_and_checks_shapes():
         panoptic_inference_from_logits(logits, masks[:, :3])
     with pytest.raises(ValueError, match="predictions.logits"):
         panoptic_inference(Predictions(logits[0], None, None, None, masks))
+    # The whole Config for its inference section failed on an AttributeError of a field.
+    with pytest.raises(
+        TypeError, match=r"config: expected InferenceConfig, got Config; pass config\.inference"
+    ):
+        panoptic_inference(Predictions(logits[None], None, None, None, masks[None]), Config.tiny())
     # A dict of the outputs, as PyTorch code passes them, gives the same result.
     preds = Predictions(logits[None], None, None, None, masks[None])
     as_dict = {k: preds[k] for k in preds.keys()}

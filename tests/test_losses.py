@@ -213,6 +213,10 @@ def test_targets_as_a_dict_and_default_weights(batch):
     np.testing.assert_allclose(cost_matrix(preds, as_dict), cost_matrix(preds, targets))
     with pytest.raises(TypeError, match=r"targets: missing \['valid'\]"):
         set_loss(preds, {k: v for k, v in as_dict.items() if k != "valid"}, WEIGHTS)
+    # 0/255 masks, as a PNG gives them, are the bool ones (255 was the target: dice < 0).
+    png = dict(as_dict, masks=np.asarray(as_dict["masks"]).astype(np.uint8) * 255)
+    np.testing.assert_allclose(set_loss(preds, png, WEIGHTS)[0], total, rtol=1e-6)
+    np.testing.assert_allclose(cost_matrix(preds, png), cost_matrix(preds, targets), rtol=1e-6)
 
 
 def test_no_target_slots_at_all():
@@ -534,6 +538,9 @@ def test_bad_inputs_raise(batch):
         set_loss(dataclasses.replace(preds, masks=preds.masks[..., :8]), targets, WEIGHTS)
     with pytest.raises(ValueError, match="num_mask_points"):
         set_loss(preds, targets, WEIGHTS, SAMPLED)
+    as_float = dataclasses.replace(targets, classes=jnp.asarray(targets.classes, jnp.float32))
+    with pytest.raises(TypeError, match="targets.classes must be integer class ids, got float32"):
+        set_loss(preds, as_float, WEIGHTS)
     # A valid target of class >= K - 1 gave a NaN loss (K - 1: trained as background).
     k = preds.logits.shape[-1]
     b, m = np.argwhere(np.asarray(targets.valid))[0]

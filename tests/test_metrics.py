@@ -8,7 +8,7 @@ import jax
 import numpy as np
 import pytest
 
-from indoorbev_jax.config import CLASS_NAMES, NUM_CLASSES, InferenceConfig
+from indoorbev_jax.config import CLASS_NAMES, NUM_CLASSES, Config, InferenceConfig
 from indoorbev_jax.inference import panoptic_inference
 from indoorbev_jax.metrics import (
     Evaluator,
@@ -327,6 +327,15 @@ def test_mask_ap_rejects_bad_input():
         mask_ap([(m, np.array([0]))], [(m, np.array([9]), np.array([0.5]))])
     with pytest.raises(ValueError, match="frame 0"):
         mask_ap([(m, np.array([0]))], [(np.ones((1, 3, 4), bool), np.array([0]), np.ones(1))])
+    # Probabilities or logits read as bool are the whole grid: refused, not scored AP 0.
+    prob = np.full((1, 4, 4), 0.1)
+    prob[0, :2] = 0.9
+    with pytest.raises(ValueError, match=r"dets\[0\]: masks must be bool .* in \[0\.1, 0\.9\]"):
+        mask_ap([(m, np.array([0]))], [(prob, np.array([0]), np.ones(1))])
+    with pytest.raises(ValueError, match=r"gts\[0\]: masks must be bool"):
+        mask_ap([(prob - 0.5, np.array([0]))], [(m, np.array([0]), np.ones(1))])
+    as_float = mask_ap([(m.astype(float), np.array([0]))], [(prob >= 0.5, [0], np.ones(1))])
+    assert as_float == mask_ap([(m, np.array([0]))], [(prob >= 0.5, [0], np.ones(1))])
 
 
 def test_iou_thresholds_above_1_are_refused():
@@ -344,6 +353,12 @@ def test_iou_thresholds_above_1_are_refused():
         with pytest.raises(ValueError, match=refused):
             Evaluator(iou_thresholds=bad)
     assert Evaluator(iou_thresholds=np.array([0.25, 0.5])).iou_thresholds == (0.25, 0.5)
+    with pytest.raises(
+        TypeError, match=r"inference: expected InferenceConfig, got Config; pass config\.inference"
+    ):
+        Evaluator(Config.tiny())
+    with pytest.raises(TypeError, match=r"class_names: expected a sequence of names, got 'Chair'"):
+        Evaluator(class_names="Chair")  # was 5 classes, one a letter
     # Any 1-D iterable of numbers still serves (a jax array, a generator); a 0-d array or a
     # bool array is named like a bare number or a bool.
     assert Evaluator(iou_thresholds=jax.numpy.array([0.25, 0.5])).iou_thresholds == (0.25, 0.5)
@@ -593,6 +608,15 @@ def test_panoptic_rejects_bad_input():
         panoptic_quality([(ids * 0, np.array([9]))], [(ids, np.array([9, 0]))])
     with pytest.raises(ValueError, match=r"gts\[0\] classes"):
         panoptic_quality([(ids, np.array([9, 0, 12]))], [(ids * 0, np.array([9]))])
+    # Float ids: whole ones are read as ids on both sides (predicted ones were a numpy
+    # casting TypeError), others are refused by name.
+    ok = np.zeros((4, 4), int)
+    ok[:2] = 1
+    want = panoptic_quality([(ok, np.array([9, 0]))], [(ok, np.array([9, 0]))])
+    got = panoptic_quality([(ok * 1.0, np.array([9, 0]))], [(ok * 1.0, np.array([9, 0]))])
+    assert got["pq"] == want["pq"] == 1.0
+    with pytest.raises(ValueError, match=r"preds\[0\]: instance_ids must be whole numbers"):
+        panoptic_quality([(ok, np.array([9, 0]))], [(ok * 0.5, np.array([9, 0]))])
 
 
 # --------------------------------------------------------------------------- Evaluator

@@ -245,6 +245,11 @@ def test_clouds_of_three_or_five_columns_are_read_by_column(model_file):
     for bad in (cloud.ravel(), cloud[:, :2], cloud.astype(str)):
         with pytest.raises(ValueError, match=r"points: expected a numeric array \[N, 3\] or"):
             predictor(bad)
+    # Channels-first, as nuScenes and torch keep clouds: read as 3-5 points, it found nothing.
+    for channels in (3, 4, 5):
+        first = np.c_[cloud, np.zeros(400, np.float32)][:, :channels].T
+        with pytest.raises(ValueError, match=rf"shape \[{channels}, 400\] looks channels-first"):
+            predictor(first)
 
 
 def test_intensity_units_map_onto_the_simulators_range():

@@ -133,6 +133,32 @@ def test_sweep_refuses_a_weight_the_config_has_not():
     assert "seed" not in T.Hyper.from_config(CFG).weights
 
 
+def test_run_sweep_checks_hand_built_hypers_before_writing(tmp_path):
+    """``run_sweep`` read K off the learning rates alone: K differing between fields failed
+    inside vmap after config.json, hypers.json and run.json were written (and the corrected
+    rerun was refused), and a negative learning rate trained uphill."""
+    from indoorbev_jax import sweep
+    from indoorbev_jax.sweep import check_hypers
+
+    good = stack_hypers(CFG, [1e-3, 2e-3], {})
+    assert check_hypers(good, CFG) == 2
+    short = good.replace(weights=dict(good.weights, dice=jnp.ones(1)))
+    uphill = good.replace(learning_rate=jnp.array([1e-3, -1e-3]))
+    missing = good.replace(weights={k: v for k, v in good.weights.items() if k != "dice"})
+    cases = (
+        (short, r"hypers\.weights\['dice'\]: expected \[K\] .*K = 2.*got shape \(1,\)"),
+        (uphill, r"hypers\.learning_rate: expected finite values >= 0, got \[0\.001.*-0\.001"),
+        (missing, r"hypers\.weights: expected the keys \[.*'dice'"),
+    )
+    for hypers, message in cases:
+        with pytest.raises(ValueError, match=message):
+            sweep.run_sweep(CFG, tmp_path / "sw", hypers, progress=False)
+        assert not [p.name for p in (tmp_path / "sw").iterdir() if p.name != ".lock"]
+    with pytest.raises(ValueError, match=r"--learning-rates: expected at least one value"):
+        stack_hypers(CFG, [], {})
+    np.testing.assert_array_equal(stack_hypers(CFG, 1e-3, {}).learning_rate, np.float32([1e-3]))
+
+
 def test_hypers_json_keeps_the_values_given():
     """hypers.json (and a member's exported config) held float32 round-offs: 1e-4 was
     9.999999747378752e-05, and weights never set (0.1) 0.10000000149011612."""
@@ -1192,6 +1218,24 @@ def test_load_params_refuses_a_sweep_workdir_and_leaves_it_resumable(tmp_path):
     assert not (tmp_path / "best").exists()
     (tmp_path / "best").mkdir()  # as those versions left it: run.json's kind decides
     rundir.check_run_kind(tmp_path, "sweep")
+
+
+def test_load_params_names_what_is_wrong_and_leaves_the_folder_alone(tmp_path):
+    """A typo in ``which`` loaded the latest checkpoint; a folder with only config.json got
+    an empty checkpoints/; a foreign config.json's error did not name the file; an exported
+    model file was "not a run directory ... expected ... a .msgpack"."""
+    with pytest.raises(ValueError, match=r"which: expected 'best' or 'latest', got 'bset'"):
+        T.load_params(tmp_path, which="bset")
+    (tmp_path / "config.json").write_text(CFG.to_json())
+    with pytest.raises(FileNotFoundError, match="no checkpoint found"):
+        T.load_params(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json"]
+    (tmp_path / "config.json").write_text('{"lr": 0.1}')
+    with pytest.raises(ValueError, match=r"config\.json: unknown config field\(s\) \['lr'\]"):
+        T.load_params(tmp_path)
+    (tmp_path / "m.msgpack").write_bytes(b"x")
+    with pytest.raises(ValueError, match=r"m\.msgpack: a file, not a run directory; .*load_model"):
+        T.load_params(tmp_path / "m.msgpack")
 
 
 def test_a_sweep_resumes_after_val_txt_changes(data, tmp_path):

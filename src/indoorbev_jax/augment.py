@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from indoorbev_jax.config import AugmentConfig, GridConfig
+from indoorbev_jax.config import AugmentConfig, GridConfig, check_section
 from indoorbev_jax.data.rasterize import instance_ids_from_masks
 from indoorbev_jax.geometry import cell_centers, cell_index, in_workspace, on_grid, wrap_angle
 from indoorbev_jax.types import Batch, Targets, float32_defaults
@@ -538,5 +538,7 @@ def augment_batch(
 
         batch = augment_batch(jax.random.key(0), batch, config.grid, config.augment)
     """
+    check_section("grid", grid, GridConfig, "grid")
+    check_section("cfg", cfg, AugmentConfig, "augment")
     keys = jax.random.split(key, batch.points.shape[0])
     return jax.vmap(lambda k, f: augment(k, f, grid, cfg, database))(keys, batch)

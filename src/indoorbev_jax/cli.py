@@ -300,6 +300,12 @@ def dataset_check(args: argparse.Namespace) -> int:
                 f"{ds.ids[k]}: none of its {stats.raw_points} points is valid (check the cloud's "
                 "frame and units against the grid's workspace)"
             )
+        seen = np.asarray(item.points)[np.asarray(item.point_valid), 3]
+        if seen.size and seen.max() > 1.0:  # trained on, not rescaled: unlike predict's input
+            warnings.append(
+                f"{ds.ids[k]}: intensity up to {seen.max():g}; the model takes [0, 1] (the "
+                "simulator's reflectivity): write the clouds scaled (Livox 0-255: / 255)"
+            )
         off_grid = int((t.valid & ~t.masks.any(axis=(1, 2))).sum())
         if off_grid:  # the evaluator leaves such objects out
             warnings.append(

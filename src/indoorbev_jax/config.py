@@ -837,6 +837,15 @@ class Config:
 LATER_FIELDS: dict[str, Any] = {"sim.sensor_rpy": (0.0, 0.0, 0.0), "sim.sensor_tilt_jitter": 0.0}
 
 
+def check_section(arg: str, value, kind: type, field: str):
+    """``value`` if it is a ``kind``, else a ``TypeError`` naming ``arg``: a whole ``Config``
+    given for its section ``field`` failed later, with an AttributeError of some field."""
+    if not isinstance(value, kind):
+        hint = f"; pass config.{field}" if isinstance(value, Config) else ""
+        raise TypeError(f"{arg}: expected {kind.__name__}, got {type(value).__name__}{hint}")
+    return value
+
+
 def _from_dict(kind, d: dict[str, Any], prefix: str):
     if not isinstance(d, dict):
         section = prefix.rstrip(".") or "config"

@@ -39,13 +39,19 @@ def as_points(points, name: str = "points") -> np.ndarray:
     """float32 [N, 4] (x, y, z, intensity) from a numeric [N, 3] (intensity 0) or [N, 4+]
     (columns past the fourth dropped) array; anything else is refused, naming ``name``.
 
-    A flat reshape to [N, 4] would read an open3d [N, 3] cloud as groups of four numbers.
+    A flat reshape to [N, 4] would read an open3d [N, 3] cloud as groups of four numbers,
+    and a channels-first [C, N] cloud read as C points finds nothing, without a word.
     """
     arr = np.asarray(points)
     if arr.ndim != 2 or arr.shape[1] < 3 or arr.dtype.kind not in "fiu":
         raise ValueError(
             f"{name}: expected a numeric array [N, 3] or [N, 4+] (x, y, z[, intensity]), "
             f"got {arr.dtype} {list(arr.shape)}"
+        )
+    if arr.shape[0] in (3, 4, 5) and arr.shape[1] > 16:
+        raise ValueError(
+            f"{name}: shape {list(arr.shape)} looks channels-first ([C, N], as nuScenes and "
+            "many torch pipelines keep clouds); expected [N, C]: transpose it (arr.T)"
         )
     if arr.shape[1] == 4:
         return arr.astype(np.float32, copy=False)

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from indoorbev_jax.config import VIEWS, InferenceConfig, check_views
+from indoorbev_jax.config import VIEWS, InferenceConfig, check_section, check_views
 from indoorbev_jax.types import Predictions, as_predictions
 
 
@@ -95,6 +95,8 @@ def panoptic_inference_from_logits(
     Returns:
       A ``PanopticOutput``.
     """
+    if config is not None:
+        check_section("config", config, InferenceConfig, "inference")
     config = config or InferenceConfig()
     _check_shapes(logits, mask_logits)
     b, q = logits.shape[:2]

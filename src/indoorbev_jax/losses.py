@@ -80,8 +80,13 @@ def _focal_terms(x: jax.Array, alpha: float, gamma: float) -> tuple[jax.Array, j
 
 def _device_targets(targets) -> Targets:
     """``as_targets`` with jax arrays: numpy masks indexed by traced sampled cells (targets
-    closed over by a jitted function) raised a TracerArrayConversionError."""
-    return jax.tree.map(jnp.asarray, as_targets(targets))
+    closed over by a jitted function) raised a TracerArrayConversionError. Integer masks are
+    read as nonzero: 0/255 masks (as a PNG gives them) took 255 as the target, and the dice
+    loss went negative."""
+    targets = jax.tree.map(jnp.asarray, as_targets(targets))
+    if jnp.issubdtype(targets.masks.dtype, jnp.integer):
+        targets = targets.replace(masks=targets.masks != 0)
+    return targets
 
 
 def _check_inputs(predictions: Predictions, targets: Targets) -> None:
@@ -107,6 +112,8 @@ def _check_inputs(predictions: Predictions, targets: Targets) -> None:
             raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
     if m > q:
         raise ValueError(f"targets hold M={m} slots but predictions only Q={q} queries")
+    if not jnp.issubdtype(targets.classes.dtype, jnp.integer):  # a take_along_axis error
+        raise TypeError(f"targets.classes must be integer class ids, got {targets.classes.dtype}")
     classes, valid = targets.classes, targets.valid
     if not isinstance(classes, jax.core.Tracer) and not isinstance(valid, jax.core.Tracer):
         # Outside jit: a class id >= K - 1 made the loss NaN (K - 1 trained as background).

@@ -25,7 +25,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from indoorbev_jax.config import CLASS_NAMES, NUM_CLASSES, InferenceConfig
+from indoorbev_jax.config import CLASS_NAMES, NUM_CLASSES, InferenceConfig, check_section
 from indoorbev_jax.types import Targets, _from_mapping
 
 # pycocotools' recall grid, built the same way so the values match bit for bit.
@@ -110,6 +110,16 @@ def _no_masks_as_3d(masks: np.ndarray, other: np.ndarray) -> np.ndarray:
     return masks.reshape((0, *other.shape[1:]) if other.ndim == 3 else (0, 0, 0))
 
 
+def _check_binary(name: str, masks: np.ndarray) -> None:
+    """Float masks must hold 0 and 1 only: read as bool, probabilities or logits (nonzero
+    almost everywhere) made every mask the whole grid, and AP 0, without a word."""
+    if masks.dtype.kind == "f" and masks.size and not ((masks == 0) | (masks == 1)).all():
+        raise ValueError(
+            f"{name}: masks must be bool (or 0/1) [N, H, W], got {masks.dtype} with values "
+            f"in [{masks.min():g}, {masks.max():g}]; binarise probabilities first (e.g. >= 0.5)"
+        )
+
+
 def _frame_arrays(gt, det, index: int):
     """A frame's ``(gt, det)`` as numpy arrays, empty mask lists as [0, H, W], shapes checked."""
     gt_masks, gt_classes = (np.asarray(x) for x in gt)
@@ -131,6 +141,8 @@ def _frame_arrays(gt, det, index: int):
             f"frame {index}: detection masks are {det_masks.shape[1:]} but ground truth masks "
             f"are {gt_masks.shape[1:]}"
         )
+    _check_binary(f"gts[{index}]", gt_masks)
+    _check_binary(f"dets[{index}]", det_masks)
     return (gt_masks, gt_classes), (det_masks, det_classes, det_scores)
 
 
@@ -487,6 +499,8 @@ def _checked_classes(ids: np.ndarray, classes: np.ndarray, name: str) -> np.ndar
     ``classes`` have their shapes and every id has a class."""
     if ids.ndim != 2:
         raise ValueError(f"{name}: expected instance_ids [H, W], got shape {ids.shape}")
+    if ids.dtype.kind not in "iub" and not (ids.dtype.kind == "f" and (ids == np.round(ids)).all()):
+        raise ValueError(f"{name}: instance_ids must be whole numbers, got {ids.dtype}")
     if classes.ndim != 1 or classes.shape[0] < 1:
         raise ValueError(f"{name}: expected instance_classes [K + 1], got shape {classes.shape}")
     if ids.size and (ids.min() < 0 or ids.max() >= classes.shape[0]):
@@ -529,7 +543,7 @@ class _PanopticStats:
                 f"frame {index}: instance_ids shapes differ, {gt_ids.shape} vs {pred_ids.shape}"
             )
         ng, np_ = len(gcls), len(pcls)
-        pair = gt_ids.ravel().astype(np.int64) * np_ + pred_ids.ravel()  # [H*W]
+        pair = gt_ids.ravel().astype(np.int64) * np_ + pred_ids.ravel().astype(np.int64)  # [H*W]
         conf = np.bincount(pair, minlength=ng * np_).reshape(ng, np_)
         g_area, p_area = conf.sum(1), conf.sum(0)
         g_seg = np.arange(ng) > 0
@@ -729,6 +743,10 @@ class Evaluator:
         iou_thresholds: Sequence[float] = (0.25, 0.5),
         miou_match_iou: float = 0.25,
     ):
+        if inference is not None:
+            check_section("inference", inference, InferenceConfig, "inference")
+        if isinstance(class_names, str):  # "Chair" was 5 classes, one a letter
+            raise TypeError(f"class_names: expected a sequence of names, got {class_names!r}")
         self.inference = inference or InferenceConfig()
         self.class_names = tuple(class_names)
         self.num_classes = len(self.class_names)

@@ -50,7 +50,10 @@ from indoorbev_jax.train import (
 def stack_hypers(config: Config, learning_rates, weight_overrides: dict[str, list[float]]) -> Hyper:
     """K ``Hyper`` stacked on a leading axis; weights not overridden come from the config."""
     base = Hyper.from_config(config)
+    learning_rates = np.atleast_1d(np.asarray(learning_rates, np.float64)).tolist()
     k = len(learning_rates)
+    if k == 0:
+        raise ValueError("--learning-rates: expected at least one value (K >= 1 models)")
     # Config's rule for each value (a NaN learning rate wrote NaN parameters; NaN in
     # hypers.json is no JSON, and NaN != NaN refused every resume).
     for flag, values in [("learning-rates", learning_rates)] + [
@@ -75,6 +78,31 @@ def stack_hypers(config: Config, learning_rates, weight_overrides: dict[str, lis
             raise ValueError(f"--{name}-weights: expected {k} values, got {len(values)}")
         weights[name] = jnp.asarray(values if values is not None else [value] * k, jnp.float32)
     return Hyper(learning_rate=jnp.asarray(learning_rates, jnp.float32), weights=weights)
+
+
+def check_hypers(hypers: Hyper, config: Config) -> int:
+    """K, once ``hypers`` (built by hand or by ``stack_hypers``) holds K >= 1 settings of
+    every value ``config`` trains with, each finite and >= 0. Raises ``ValueError`` naming
+    the field: ``run_sweep`` checks before it writes anything, where a K that differed
+    between fields failed inside vmap after the workdir's files were written (and then
+    refused the corrected rerun) and a negative learning rate trained uphill."""
+    fields = {"learning_rate": hypers.learning_rate}
+    fields.update({f"weights[{name!r}]": v for name, v in dict(hypers.weights).items()})
+    want = sorted(Hyper.from_config(config).weights)
+    if sorted(hypers.weights) != want:
+        raise ValueError(f"hypers.weights: expected the keys {want}, got {sorted(hypers.weights)}")
+    lr = np.asarray(hypers.learning_rate)
+    k = lr.shape[0] if lr.ndim == 1 else 0
+    for name, value in fields.items():
+        value = np.asarray(value)
+        if value.shape != (k,) or k == 0:
+            raise ValueError(
+                f"hypers.{name}: expected [K] with K >= 1 the same for every field (K = "
+                f"{k} from learning_rate), got shape {value.shape}"
+            )
+        if not (np.isfinite(value) & (value >= 0)).all():
+            raise ValueError(f"hypers.{name}: expected finite values >= 0, got {value.tolist()}")
+    return k
 
 
 def init_sweep(config: Config, k: int, key: jax.Array) -> TrainState:
@@ -193,7 +221,7 @@ def run_sweep(
     """
     check_train_seed(config.train)  # holds_workdir made workdir, a Path
     t = config.train
-    k = int(hypers.learning_rate.shape[0])
+    k = check_hypers(hypers, config)
     config_path, run_path = workdir / "config.json", workdir / "run.json"
     hypers_path = workdir / "hypers.json"
     data_source = None if data is None else str(Path(data).resolve())

@@ -37,7 +37,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from indoorbev_jax.augment import ObjectDatabase, augment_batch
-from indoorbev_jax.config import Config, check_train_seed
+from indoorbev_jax.config import Config, ConfigError, check_train_seed
 from indoorbev_jax.data import kitti
 from indoorbev_jax.losses import seed_loss, set_loss
 from indoorbev_jax.models import IndoorBEV
@@ -609,21 +609,37 @@ def train_and_evaluate(
 
 
 def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config, Any]:
-    """(config, params) of a run directory's ``best`` (or ``latest``) checkpoint."""
+    """(config, params) of a run directory's ``best`` (or ``latest``) checkpoint.
+
+    ``predict.load_model`` reads a run directory or an exported model file alike.
+    """
+    if which not in ("best", "latest"):  # a typo loaded the latest checkpoint
+        raise ValueError(f"which: expected 'best' or 'latest', got {which!r}")
     workdir = Path(workdir)
     config_file = workdir / "config.json"
+    if workdir.is_file():
+        raise ValueError(
+            f"{workdir}: a file, not a run directory; read an exported model file with "
+            "predict.load_model"
+        )
     if not config_file.is_file():
         raise FileNotFoundError(
             f"{workdir}: not a training run directory (no config.json); expected the --workdir "
-            "of experiments/train.py or an exported model file (.msgpack)"
+            "of experiments/train.py"
         )
-    config = Config.from_dict(read_json(config_file))
+    try:
+        config = Config.from_dict(read_json(config_file))
+    except ConfigError as e:
+        raise ConfigError(f"{config_file}: {e}") from None
     if other_kind(workdir, "train"):
         raise ValueError(
             f"{workdir}: a sweep's workdir: its checkpoints hold K stacked models, which "
             "predict, export and --init-from cannot load as one model (export one with "
             "experiments/export_model.py WORKDIR --member K --out F)"
         )
+    if not any((workdir / name).is_dir() for name in ("checkpoints", "best")):
+        # Before orbax, which makes the folder it is given.
+        raise FileNotFoundError(f"{workdir}: no checkpoint found")
     template = init_state(config, jax.random.key(0))
     # No best/ made where there is none (orbax creates the folder it is given).
     has_best = (workdir / "best").is_dir()

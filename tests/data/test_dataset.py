@@ -8,7 +8,7 @@ import pytest
 from indoorbev_jax.cli import main as cli_main
 from indoorbev_jax.config import CLASS_NAMES, NUM_CLASSES, Config
 from indoorbev_jax.data import kitti
-from indoorbev_jax.data.dataset import KittiDataset, collate, pad_points
+from indoorbev_jax.data.dataset import KittiDataset, collate, make_targets, pad_points
 from indoorbev_jax.data.rasterize import rasterize_boxes
 
 CFG = Config.tiny()
@@ -27,6 +27,7 @@ def labels_two_objects():
 def make_dataset(root):
     rng = np.random.default_rng(0)
     pts = rng.uniform(-2.5, 2.5, (500, 4)).astype(np.float32)
+    pts[:, 3] = rng.random(500)  # intensity in [0, 1], as the model takes it
     pts[:5] = np.nan
     pts[5:10, 0] = 50.0  # outside the workspace
     kitti.write_frame(root, "000000", pts, labels_two_objects(), CLASS_NAMES)
@@ -94,6 +95,12 @@ def test_mask_file_gives_true_shape_and_empty_cloud_is_valid(tmp_path):
     batch = collate([ds.load(k)[0] for k in range(3)])
     assert batch.points.shape == (3, CFG.data.max_points, 4)
     assert batch.targets.masks.shape == (3, CFG.data.max_objects, *CFG.grid.shape)
+    # Footprints of another grid: set_loss blamed the predictions' masks for them.
+    with pytest.raises(
+        ValueError,
+        match=r"instance_ids: expected the grid's \[H, W\] = \[40, 40\], got shape \[50, 50\]",
+    ):
+        make_targets(kitti.ObjectLabels.empty(), CFG.grid, 4, np.zeros((50, 50), np.int32))
 
 
 def test_more_points_than_max_keeps_an_even_spread(tmp_path):
@@ -266,6 +273,13 @@ def test_dataset_check_warns_of_off_grid_objects_and_empty_clouds(tmp_path, caps
     assert "000003: none of its 50 points is valid" in out
     assert "000003: 2 of 2 objects cover no cell of the grid x [-5.0, 5.0]" in out
     assert out.rstrip().endswith("no problems found (4 warnings above)")
+    livox = np.random.default_rng(1).uniform(-2.0, 2.0, (50, 4)).astype(np.float32)
+    livox[:, 3] = np.linspace(0.0, 200.0, 50)  # 0-255 units: trained on as they are
+    kitti.write_frame(tmp_path, "000001", livox, labels_two_objects(), CLASS_NAMES)
+    assert cli_main(argv) == 0
+    out = capsys.readouterr().out
+    assert "000001: intensity up to 200; the model takes [0, 1]" in out
+    assert "000001: an empty cloud" not in out
     scored = labels_two_objects()
     scored.scores = np.ones(2)
     kitti.write_labels(tmp_path / "label_2" / "000002.txt", scored, CLASS_NAMES)
@@ -277,7 +291,7 @@ def test_dataset_check_lists_max_problems_and_no_false_orphans(tmp_path, capsys)
     """``--max-problems N`` lists N warnings (docs/DATASET.md), and with ``--split`` the
     clouds of frames outside the split are not "clouds without a label_2 file". A mutation
     audit: listing N - 1 and that false warning under --split both passed."""
-    cloud = np.random.default_rng(0).uniform(-2.5, 2.5, (200, 4)).astype(np.float32)
+    cloud = np.random.default_rng(0).uniform(0.0, 1.0, (200, 4)).astype(np.float32)
     for k in range(12):  # 11 empty clouds: 11 warnings; every frame has its labels
         kitti.write_frame(tmp_path, f"{k:06d}", np.zeros((0, 4), np.float32) if k else cloud,
                           kitti.ObjectLabels.empty(), CLASS_NAMES)  # fmt: skip

@@ -63,6 +63,24 @@ def test_camera_convention_fields():
     assert -math.pi <= ry <= math.pi  # KITTI's range, after rounding to six decimals
 
 
+def test_object_labels_refuse_fields_of_another_shape():
+    """pos given as [3, M] was reshaped to [M, 3], scrambling every box without a word; a
+    flat array of M * 3 values, or [M, 1] yaws, are still read."""
+    pos = np.array([[1.0, 1.0, 0.0], [-2.0, 0.0, 0.0]])
+    good = kitti.ObjectLabels([0, 1], np.ones((2, 3)), pos, [0.1, 0.2], [0, 0])
+    flat = kitti.ObjectLabels([0, 1], np.ones(6), pos.ravel(), [[0.1], [0.2]], [0, 0])
+    for field in ("dims", "pos", "yaw", "occlusion"):
+        np.testing.assert_array_equal(getattr(flat, field), getattr(good, field))
+    with pytest.raises(
+        ValueError, match=r"ObjectLabels\.pos: expected \[M, 3\] with M = 2 .* \[3, 2\]"
+    ):
+        kitti.ObjectLabels([0, 1], np.ones((2, 3)), pos.T, [0.1, 0.2], [0, 0])
+    with pytest.raises(
+        ValueError, match=r"ObjectLabels\.scores: expected \[M\] .* got shape \[3\]"
+    ):
+        kitti.ObjectLabels([0, 1], np.ones((2, 3)), pos, [0.1, 0.2], [0, 0], [0.5, 0.4, 0.3])
+
+
 def test_prediction_lines_end_with_the_score():
     labels = kitti.ObjectLabels([6], [[0.5, 0.4, 1.7]], [[1.0, 0.0, 0.85]], [0.0], [2], [0.75])
     f = kitti.labels_to_lines(labels, CLASS_NAMES)[0].split()

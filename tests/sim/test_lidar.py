@@ -212,6 +212,12 @@ def test_cpu_threads_split_launches_without_changing_results(scenes, monkeypatch
     # Per-ray origins are not a per-scene batch: the error says so instead of broadcasting.
     with pytest.raises(ValueError, match=r"one origin per scene \(1 here\), got \(5, 3\).*vmap"):
         lidar.cast_rays(mx, mjx.put_data(m, d), np.zeros((5, 3)), dirs[:5], MAX_RANGE)
+    # Two ranges for one scene: JAX's broadcasting error did not name max_range.
+    with pytest.raises(
+        ValueError,
+        match=r"max_range: expected a scalar or one value per scene \[B\] = \[1\], got shape \[2\]",
+    ):
+        lidar.cast_rays(mx, mjx.put_data(m, d), origins[0], dirs, np.full(2, MAX_RANGE))
 
 
 @pytest.mark.parametrize("method", ["binned", "jax"])

@@ -164,6 +164,14 @@ def test_generate_batch_contract():
     assert batch.targets.masks.shape == (4, m, *CFG.grid.shape)
     assert batch.targets.dims.shape == (4, m, 3) and batch.targets.yaw.shape == (4, m)
     assert info.num_points.shape == (4, m) and info.point_object.shape == (4, n)
+    # A batch of no frames failed deep in the cast (ZeroDivisionError), -1 inside MLIR.
+    for size in (0, -1):
+        with pytest.raises(
+            ValueError, match=rf"batch_size: expected a whole number > 0, got {size}"
+        ):
+            generate.generate_batch_with_info(jax.random.key(3), CFG, "train", size)
+    with pytest.raises(ValueError, match=r"num_scenes: expected a whole number > 0, got 0"):
+        generate.generate_sequences(jax.random.key(3), CFG, 0)
 
 
 def test_sim_config_validation_names_fields():

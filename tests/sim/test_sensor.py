@@ -137,6 +137,17 @@ def test_intensity_from_reflectivity_and_incidence(scene):
     s = _scan(mx, dx, pose, dirs, jax.random.key(0), cfg, reflectivity=1.5 * refl / 0.8)
     want = np.minimum(1.5 * np.abs(np.sin(el)), 1.0)  # 1.48 and 1.30 clip, 0.75 and 0.51 not
     np.testing.assert_allclose(np.asarray(s.points[:, 3]), want, atol=1e-5)
+    # One value short, or a quaternion for rot: JAX's reshape errors named neither.
+    with pytest.raises(
+        ValueError,
+        match=r"reflectivity: expected one value per geom, .*G = 3, B = 1, got shape \[2\]",
+    ):
+        _scan(mx, dx, pose, dirs, jax.random.key(0), cfg, reflectivity=refl[:2])
+    quat = sensor.Pose(jnp.array([0.0, 0.0, 1.0]), jnp.array([1.0, 0.0, 0.0, 0.0]))
+    with pytest.raises(
+        ValueError, match=r"pose\.rot: expected \[3, 3\] or \[B, 3, 3\] \(a rotation matrix"
+    ):
+        _scan(mx, dx, quat, dirs, jax.random.key(0), cfg)
 
 
 def test_batched_scenes_and_poses(scene):

@@ -85,11 +85,6 @@ def read_npy(path: str | os.PathLike) -> np.ndarray:
         raise DatasetError(f"{path}: not a readable .npy array ({e})") from e
     if arr.dtype.names:  # structured: fields by name
         return _columns(path, list(arr.dtype.names), lambda n: arr[n].reshape(-1))
-    if arr.ndim == 2 and arr.shape[0] in (3, 4, 5) and arr.shape[1] > 16:
-        raise DatasetError(
-            f"{path}: shape {list(arr.shape)} looks channels-first ([C, N], as nuScenes and "
-            "many torch pipelines keep clouds); expected [N, C]: save arr.T"
-        )
     try:
         return as_points(arr, str(path))
     except ValueError as e:

@@ -137,6 +137,12 @@ def make_targets(
         ids, masks = rasterize_boxes(boxes, valid, grid)
         ids, masks = np.asarray(ids), np.asarray(masks)
     else:
+        instance_ids = np.asarray(instance_ids)
+        if instance_ids.shape != grid.shape:  # set_loss blamed the predictions' masks
+            raise ValueError(
+                f"instance_ids: expected the grid's [H, W] = {list(grid.shape)}, got shape "
+                f"{list(instance_ids.shape)}"
+            )
         masks = instance_ids[None] == np.arange(1, max_objects + 1)[:, None, None]
         masks &= valid[:, None, None]
         # Ids beyond max_objects were dropped with their objects; re-derive the map.

@@ -56,6 +56,21 @@ class DatasetError(ValueError):
     """A dataset file is malformed; the message names the file (and line)."""
 
 
+def _labels_field(name: str, value, dtype, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as ``dtype`` of ``shape``; a flat array of as many values (or one with
+    singleton axes) is reshaped, any other shape refused: [3, M] positions read as [M, 3]
+    scrambled every box without a word."""
+    arr = np.asarray(value, dtype)
+    squeezed = arr.reshape([n for n in arr.shape if n != 1])
+    if arr.shape != shape and not (squeezed.ndim <= 1 and arr.size == math.prod(shape)):
+        want = ", ".join(("M" if k == 0 else str(n)) for k, n in enumerate(shape))
+        raise ValueError(
+            f"ObjectLabels.{name}: expected [{want}] with M = {shape[0]} (one a class in "
+            f"classes), got shape {list(arr.shape)}"
+        )
+    return arr.reshape(shape)
+
+
 @dataclasses.dataclass
 class ObjectLabels:
     """Objects of one frame, in the lidar frame (numpy).
@@ -80,12 +95,12 @@ class ObjectLabels:
     def __post_init__(self):
         self.classes = np.asarray(self.classes, np.int32).reshape(-1)
         m = len(self.classes)
-        self.dims = np.asarray(self.dims, np.float32).reshape(m, 3)
-        self.pos = np.asarray(self.pos, np.float32).reshape(m, 3)
-        self.yaw = np.asarray(self.yaw, np.float32).reshape(m)
-        self.occlusion = np.asarray(self.occlusion, np.int32).reshape(m)
+        self.dims = _labels_field("dims", self.dims, np.float32, (m, 3))
+        self.pos = _labels_field("pos", self.pos, np.float32, (m, 3))
+        self.yaw = _labels_field("yaw", self.yaw, np.float32, (m,))
+        self.occlusion = _labels_field("occlusion", self.occlusion, np.int32, (m,))
         if self.scores is not None:
-            self.scores = np.asarray(self.scores, np.float64).reshape(m)
+            self.scores = _labels_field("scores", self.scores, np.float64, (m,))
 
     def __len__(self) -> int:
         return len(self.classes)

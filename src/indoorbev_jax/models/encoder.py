@@ -69,8 +69,8 @@ class AFPCCN(nn.Module):
         """Encode points into the BEV map.
 
         Args:
-          points: float [B, N, 4], (x, y, z, intensity); NaN/Inf and out-of-range points are
-            ignored, as are points with ``valid`` False.
+          points: float [B, N, 4], (x, y, z, intensity in [0, 1]); NaN/Inf and out-of-range
+            points are ignored, as are points with ``valid`` False.
           valid: bool [B, N].
 
         Returns:

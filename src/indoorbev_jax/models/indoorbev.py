@@ -40,7 +40,9 @@ class IndoorBEV(nn.Module):
         """Predict objects from a padded batch of point clouds.
 
         Args:
-          points: float [B, N, 4], (x, y, z, intensity) in the lidar frame.
+          points: float [B, N, 4], (x, y, z, intensity) in the lidar frame, metres, with
+            intensity in [0, 1] as the simulator gives it (other units:
+            ``predict.normalize_intensity``; 0-255 clouds find next to nothing).
           valid: bool [B, N]; invalid, non-finite and out-of-workspace points are ignored.
 
         Returns:
