@@ -11,9 +11,9 @@ import argparse
 import json
 from pathlib import Path
 
+from indoorbev_jax import fileio
 from indoorbev_jax.checks import check_out_file
 from indoorbev_jax.cli import HelpFormatter
-from indoorbev_jax.data import kitti
 
 PANELS = (
     ("train", "loss", "training loss"),
@@ -86,7 +86,7 @@ def main(argv=None) -> None:
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.tight_layout()
-    kitti.atomic_write(Path(args.out), lambda tmp: fig.savefig(tmp, dpi=100, format=suffix))
+    fileio.atomic_write(Path(args.out), lambda tmp: fig.savefig(tmp, dpi=100, format=suffix))
     print(f"wrote {args.out}")
 
 

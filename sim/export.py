@@ -37,6 +37,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from indoorbev_jax import fileio
 from indoorbev_jax.checks import check_folder, check_seed, check_whole
 from indoorbev_jax.config import Config, flatten_dict
 from indoorbev_jax.data import kitti
@@ -133,7 +134,7 @@ def _check_meta(root: Path, meta: dict) -> None:
                 f"{root}: holds {', '.join(held)} but no export.json, so not an export of "
                 "this command to resume; use another --out"
             )
-        kitti.atomic_write(path, lambda p: p.write_text(json.dumps(meta, indent=1)))
+        fileio.atomic_write(path, lambda p: p.write_text(json.dumps(meta, indent=1)))
 
 
 def _check_bag_place(bag: Path, root: Path) -> None:
@@ -158,11 +159,11 @@ def _check_bag_place(bag: Path, root: Path) -> None:
 
 
 def _remove_stale_temporaries(root: Path, min_age: float = 60.0) -> None:
-    """Deletes what a killed ``kitti.atomic_write`` left (``.<name>.<random>.tmp``,
+    """Deletes what a killed ``fileio.atomic_write`` left (``.<name>.<random>.tmp``,
     ``min_age`` seconds old) in this export's folders (export.json checked); a user's hidden
     file of another name, or another export's write in flight, is left alone."""
     for folder in (root, *(root / d for d in _DATA_DIRS)):
-        kitti.remove_stale_temporaries(folder, "*", min_age)
+        fileio.remove_stale_temporaries(folder, "*", min_age)
 
 
 def saved_preset(root: str | os.PathLike) -> str | None:
@@ -253,7 +254,7 @@ def export(
     _check_meta(root, meta)  # stable_dict: an export.json of an older version still matches
     # A second export into this folder is refused while one runs: both wrote every frame.
     # Taken after the check, so that a refused export leaves the folder as it was.
-    with kitti.hold_folder(root, "export", "--out"):
+    with fileio.hold_folder(root, "export", "--out"):
         started = time.time()
         _remove_stale_temporaries(root)
         t_len = config.sim.frames_per_sequence

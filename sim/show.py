@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from indoorbev_jax import fileio
 from indoorbev_jax.checks import check_folder
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
@@ -40,7 +41,7 @@ def show(
         pic = render_frame(points, labels, mask, config.grid, config.data.class_names)
         path = out / f"{fid}.png"
         # Never a half-written picture under its name (Ctrl-C, a full disk on a rerun).
-        kitti.atomic_write(path, lambda tmp, pic=pic: pic.save(tmp, format="PNG"))
+        fileio.atomic_write(path, lambda tmp, pic=pic: pic.save(tmp, format="PNG"))
         written.append(path)
         check_interrupted()
     return written

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from indoorbev_jax.fileio import atomic_write, file_in_path
+
 
 def whole_bound(minimum: int) -> str:
     """How a message states the bound of a whole number: \"> 0\" or \">= N\"."""
@@ -70,8 +72,6 @@ def check_out_file(flag: str, path) -> Path:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        from indoorbev_jax.data.kitti import file_in_path
-
         blocker = file_in_path(path.parent)
         reason = f"{blocker} is a file" if blocker is not None else (e.strerror or str(e))
         raise OSError(e.errno, f"{flag} {path}: cannot make its folder ({reason})") from e
@@ -81,11 +81,9 @@ def check_out_file(flag: str, path) -> Path:
 
 
 def write_json(path, payload, indent: int = 2) -> None:
-    """``payload`` as JSON in ``path``, atomically (``kitti.atomic_write``)."""
-    from indoorbev_jax.data import kitti  # not at the top: kitti imports numpy-heavy helpers
-
+    """``payload`` as JSON in ``path``, atomically (``fileio.atomic_write``)."""
     text = json.dumps(payload, indent=indent) + "\n"
-    kitti.atomic_write(Path(path), lambda tmp: tmp.write_text(text))
+    atomic_write(Path(path), lambda tmp: tmp.write_text(text))
 
 
 def check_positive(name: str, value, unit: str = "seconds") -> float:

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from indoorbev_jax import viz
+from indoorbev_jax import fileio, viz
 from indoorbev_jax.boxes import check_box_source, segment_boxes
 from indoorbev_jax.config import Config, GridConfig
 from indoorbev_jax.data import kitti
@@ -108,7 +108,7 @@ def export_model(params: Any, config: Config, path: str | os.PathLike) -> Path:
     }
     path = Path(path)
     data = serialization.msgpack_serialize(payload)
-    kitti.atomic_write(path, lambda tmp: tmp.write_bytes(data))  # names path if it fails
+    fileio.atomic_write(path, lambda tmp: tmp.write_bytes(data))  # names path if it fails
     return path
 
 
@@ -528,8 +528,8 @@ def _remove_stale_temporaries(out: Path, min_age: float = 60.0) -> None:
     """What a kill -9 mid-write left of this run's outputs (``min_age`` seconds old); no
     run reads it."""
     for d, ext in OUTPUT_DIRS.items():
-        kitti.remove_stale_temporaries(out / d, f"*{ext}", min_age)
-    kitti.remove_stale_temporaries(out, "predict.json", min_age)
+        fileio.remove_stale_temporaries(out / d, f"*{ext}", min_age)
+    fileio.remove_stale_temporaries(out, "predict.json", min_age)
 
 
 def _prepare_out(out: Path, run: dict, overwrite: bool, check_only: bool = False) -> None:
@@ -573,7 +573,7 @@ def _prepare_out(out: Path, run: dict, overwrite: bool, check_only: bool = False
         for path in ours:
             path.unlink()
     _remove_stale_temporaries(out)
-    kitti.atomic_write(manifest, lambda p: p.write_text(json.dumps(run, indent=1) + "\n"))
+    fileio.atomic_write(manifest, lambda p: p.write_text(json.dumps(run, indent=1) + "\n"))
 
 
 def _eta(seconds: float) -> str:
@@ -674,7 +674,7 @@ def predict(
     # folder refused as another's outputs is refused before the lock leaves a file in it
     # (and checked again under the lock, which another run may have held meanwhile).
     _prepare_out(out, run, overwrite, check_only=True)
-    with kitti.hold_folder(out, "predict run", "--out"):
+    with fileio.hold_folder(out, "predict run", "--out"):
         run_started = time.time()
         _prepare_out(out, run, overwrite)
         predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity, mount)
@@ -771,7 +771,7 @@ def predict(
             kitti.write_mask(mask_path, ids)
             if pictures:
                 pic = render_prediction(config, padded, valid, output, bev, labels, ids)
-                kitti.atomic_write(picture_path, lambda p: pic.save(p, format="PNG"))
+                fileio.atomic_write(picture_path, lambda p: pic.save(p, format="PNG"))
             kitti.write_labels(label_path, labels, names)  # last: marks the frame done
             note = tally(frame, valid, predictor.last_counts)
             factor = predictor.last_intensity_factor

@@ -20,8 +20,8 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
+from indoorbev_jax import fileio
 from indoorbev_jax.config import Config, config_diff
-from indoorbev_jax.data import kitti
 
 if TYPE_CHECKING:
     from indoorbev_jax.train import TrainState
@@ -211,7 +211,7 @@ def writes_run_files() -> bool:
 
 
 def write_text_atomic(path: Path, text: str) -> None:
-    kitti.atomic_write(Path(path), lambda tmp: tmp.write_text(text))
+    fileio.atomic_write(Path(path), lambda tmp: tmp.write_text(text))
 
 
 def _describe_source(data: str | None) -> str:
@@ -329,7 +329,7 @@ def check_resume(
 
 
 def holds_workdir(run_fn):
-    """Runs ``run_fn(config, workdir, ...)`` holding ``kitti.hold_folder``'s lock on
+    """Runs ``run_fn(config, workdir, ...)`` holding ``fileio.hold_folder``'s lock on
     ``workdir/.lock``: two runs started in one workdir both ran to the end, writing one
     metrics log and one set of checkpoints. Only process 0 of a multi-host run takes it
     (its hosts share the workdir)."""
@@ -337,7 +337,7 @@ def holds_workdir(run_fn):
     @functools.wraps(run_fn)
     def run(config, workdir, *args, **kwargs):
         workdir = Path(workdir)
-        with kitti.hold_folder(workdir, "run", "workdir", take=writes_run_files()):
+        with fileio.hold_folder(workdir, "run", "workdir", take=writes_run_files()):
             return run_fn(config, workdir, *args, **kwargs)
 
     return run

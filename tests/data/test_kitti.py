@@ -7,6 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
+from indoorbev_jax import fileio
 from indoorbev_jax.config import CLASS_NAMES, Config, ConfigError, DataConfig, with_overrides
 from indoorbev_jax.data import kitti
 
@@ -284,15 +285,15 @@ def test_a_failed_write_names_the_file_and_leaves_nothing(tmp_path):
 
     target = tmp_path / "velodyne" / "000000.bin"
     with pytest.raises(OSError, match=r"cannot write .*000000\.bin: No space left on device"):
-        kitti.atomic_write(target, full)
+        fileio.atomic_write(target, full)
     assert list(target.parent.iterdir()) == []
     # A file where a folder must be: named as such (it said only "File exists").
     (tmp_path / "afile").write_text("")
     with pytest.raises(OSError, match=r"cannot write .*afile/x/a\.bin: .*afile is a file, not"):
-        kitti.atomic_write(tmp_path / "afile" / "x" / "a.bin", full)
+        fileio.atomic_write(tmp_path / "afile" / "x" / "a.bin", full)
     # Looking for that file must not replace the message (Path.is_file raised here).
     with pytest.raises(OSError, match=r"cannot write .*a\.bin: File name too long"):
-        kitti.atomic_write(tmp_path / ("n" * 300) / "a.bin", full)
+        fileio.atomic_write(tmp_path / ("n" * 300) / "a.bin", full)
 
 
 def test_split_files_from_other_editors(tmp_path):
@@ -321,13 +322,13 @@ def test_atomic_write_leaves_no_partial_file(tmp_path):
         raise Boom
 
     with pytest.raises(Boom):
-        kitti.atomic_write(tmp_path / "x.txt", write)
+        fileio.atomic_write(tmp_path / "x.txt", write)
     assert list(tmp_path.iterdir()) == []
     # A folder that cannot be made (here: a file in the way) names the file being written,
     # not a hidden temporary one.
     (tmp_path / "a_file").write_text("")
     with pytest.raises(OSError, match=r"cannot write .*a_file/sub/y\.txt: "):
-        kitti.atomic_write(tmp_path / "a_file" / "sub" / "y.txt", lambda p: p.write_text("y"))
+        fileio.atomic_write(tmp_path / "a_file" / "sub" / "y.txt", lambda p: p.write_text("y"))
 
 
 def test_atomic_write_syncs_the_data_before_the_rename(tmp_path, monkeypatch):
@@ -348,7 +349,7 @@ def test_atomic_write_syncs_the_data_before_the_rename(tmp_path, monkeypatch):
 
     monkeypatch.setattr(os, "fsync", fsync)
     monkeypatch.setattr(os, "replace", replace)
-    kitti.atomic_write(tmp_path / "x.txt", lambda p: p.write_text("x"))
+    fileio.atomic_write(tmp_path / "x.txt", lambda p: p.write_text("x"))
     assert [c[0] for c in calls] == ["fsync", "replace"]
     assert calls[0][1] == calls[1][1] and calls[1][2] == "x.txt"
     assert (tmp_path / "x.txt").read_text() == "x"
@@ -519,23 +520,23 @@ def test_hold_folder_names_the_holder_and_what_stands_in_its_way(tmp_path, monke
     import fcntl
 
     held = tmp_path / "held"
-    with kitti.hold_folder(held, "export", "--out"):
+    with fileio.hold_folder(held, "export", "--out"):
         assert (held / ".lock").read_text() == f"export, pid {os.getpid()}\n"
         said = rf"held: in use by another export \(pid {os.getpid()}\); wait .* another --out"
         with pytest.raises(ValueError, match=said):
-            with kitti.hold_folder(held, "predict run", "--out"):
+            with fileio.hold_folder(held, "predict run", "--out"):
                 pass
     with open(held / ".lock", "w") as old:  # a lock of an older version: the pid alone
         fcntl.flock(old, fcntl.LOCK_EX | fcntl.LOCK_NB)
         old.write("pid 4242\n")
         old.flush()
         with pytest.raises(ValueError, match=r"in use by another run \(pid 4242\)"):
-            with kitti.hold_folder(held, "run", "workdir"):
+            with fileio.hold_folder(held, "run", "workdir"):
                 pass
     (tmp_path / "afile").write_text("x")
     for out in (tmp_path / "afile", tmp_path / "afile" / "sub"):
         with pytest.raises(OSError, match=r"cannot write in .*: .*afile is a file, not a folder"):
-            with kitti.hold_folder(out, "predict run", "--out"):
+            with fileio.hold_folder(out, "predict run", "--out"):
                 pass
     real_open = open
 
@@ -544,8 +545,8 @@ def test_hold_folder_names_the_holder_and_what_stands_in_its_way(tmp_path, monke
             raise OSError(errno.EROFS, "Read-only file system")
         return real_open(path, *args, **kwargs)
 
-    monkeypatch.setattr(kitti, "open", read_only, raising=False)
+    monkeypatch.setattr(fileio, "open", read_only, raising=False)
     ran = []
-    with kitti.hold_folder(held, "predict run", "--out"):
+    with fileio.hold_folder(held, "predict run", "--out"):
         ran.append(True)
     assert ran == [True]

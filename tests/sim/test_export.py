@@ -257,7 +257,7 @@ def test_resume_after_kill_equals_uninterrupted_export(exported, cache, tmp_path
     torn = kitti.frame_paths(out, done[-1])
     torn["points"].write_bytes(torn["points"].read_bytes()[:37])
     torn["labels"].unlink()
-    # What a kill inside kitti.atomic_write leaves: the resume deletes it, a minute old at
+    # What a kill inside fileio.atomic_write leaves: the resume deletes it, a minute old at
     # its start, or just made (a kill right before the resume) once the run is done, older
     # than the run; a user's hidden file of another name is kept.
     (out / "mask_2" / f".{done[0]}.png.k1ll3d_a.tmp").write_bytes(b"")
