@@ -685,6 +685,34 @@ def test_silence_hint_names_the_likely_qos_cause():
     assert "best-effort" in mixed  # a PointCloud2 publisher too: QoS is still the likely cause
 
 
+def test_silence_hint_reads_the_graph_and_never_raises():
+    """The node's hint reads the topic's publishers off the graph: their types and the QoS
+    they offer; a graph query that fails gives no hint rather than stopping the node."""
+    import types
+
+    from indoorbev_jax.ros2.detect import _silence_hint, silence_hint
+
+    def info(kind, reliability):
+        qos = types.SimpleNamespace(reliability=types.SimpleNamespace(name=reliability))
+        return types.SimpleNamespace(topic_type=kind, qos_profile=qos)
+
+    graph = [info("sensor_msgs/msg/PointCloud2", "RELIABLE"),
+             info("sensor_msgs/msg/PointCloud2", "BEST_EFFORT"),
+             info("livox_ros_driver2/msg/CustomMsg", "RELIABLE")]  # fmt: skip
+    asked = []
+    node = types.SimpleNamespace(get_publishers_info_by_topic=lambda t: asked.append(t) or graph)
+    got = _silence_hint(node, "/ns/livox/lidar", 0, "/livox/lidar", True)
+    assert asked == ["/ns/livox/lidar"]
+    assert got == silence_hint(0, 2, "/livox/lidar", True, 1, ["livox_ros_driver2/msg/CustomMsg"])
+    assert "1 of them reliable, so QoS is not the cause" in got
+
+    def broken(topic):
+        raise RuntimeError("graph unavailable")
+
+    gone = types.SimpleNamespace(get_publishers_info_by_topic=broken)
+    assert _silence_hint(gone, "/livox/lidar", 0, "/livox/lidar", False) is None
+
+
 def test_bag_log_time_is_never_negative():
     """mcap refuses a negative log time: a pre-1970 stamp ended the recording."""
     from indoorbev_jax.ros2.detect import bag_log_ns

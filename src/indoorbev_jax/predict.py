@@ -23,7 +23,7 @@ import os
 import statistics
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -645,20 +645,9 @@ def predict(
     config, params = load_model(model_path)
     fingerprint = model_fingerprint(config, params)  # the model file's, before --views
     config = with_thresholds(config, views=views)
-    out, names = Path(out), config.data.class_names
+    out = Path(out)
     total, frames_in = open_input(input_path, topic)
-    if out.resolve() == Path(input_path).resolve():
-        raise ValueError(f"--out {out} is INPUT: its label_2/ and mask_2/ would be replaced")
-    if bag_out is not None:
-        from indoorbev_jax.rosbag import check_bag_target
-
-        bag, source = Path(bag_out).resolve(), Path(input_path).resolve()
-        for other, what in ((source, "INPUT"), (out.resolve(), "--out")):
-            if bag == other or bag in other.parents:
-                raise ValueError(f"--bag-out {bag_out} would replace {what} {other}")
-        if _is_bag_folder(source) and source in bag.parents:
-            raise ValueError(f"--bag-out {bag_out} lies inside the INPUT bag {source}")
-        check_bag_target(bag_out, ("/points", "/detections"))
+    _check_out_paths(input_path, out, bag_out)
     run = {
         "format": PREDICT_FORMAT,
         "model": fingerprint,
@@ -678,14 +667,6 @@ def predict(
         run_started = time.time()
         _prepare_out(out, run, overwrite)
         predictor = Predictor(config, jax.tree.map(jnp.asarray, params), intensity, mount)
-        grid = config.grid
-        z_range = [z - predictor.z_offset for z in grid.z_range]  # in the cloud's height
-        workspace = f"x {list(grid.x_range)}, y {list(grid.y_range)}, z {z_range} m"
-        if mount.rotated:
-            workspace += " in the level frame (--lidar-rpy)"
-        summary = {"frames": 0, "objects": 0, "thinned_frames": 0, "resumed_frames": 0,
-                   "bad_frames": [], "empty_frames": []}  # fmt: skip
-        latencies, compiled, factors_said = [], [], set()
         say = functools.partial(print, flush=True) if verbose else (lambda *a, **k: None)
         if mount != LEVEL:
             say(f"lidar mount: {mount.describe(config.sim.sensor_height)}")
@@ -695,116 +676,173 @@ def predict(
             print(f"note: --level-frame {level_frame!r} names the frame of --bag-out's messages; "
                   "without --bag-out it is unused (KITTI labels carry no frame id)",
                   file=sys.stderr, flush=True)  # fmt: skip
-        started = time.perf_counter()
-
-        def run_frames():
-            for position, frame in enumerate(frames_in, 1):
-                check_interrupted()
-                count = f"[{position}/{total}] {frame.frame_id}"
-                if frame.error is not None:
-                    if not skip_bad_frames:
-                        raise type(frame.error)(
-                            f"{frame.error} (frame {frame.frame_id}; --skip-bad-frames skips it)"
-                        ) from None
-                    summary["bad_frames"].append(frame.frame_id)
-                    print(f"{count}: skipped: {frame.error}", file=sys.stderr, flush=True)
-                    continue
-                label_path = out / "label_2" / f"{frame.frame_id}.txt"
-                mask_path = out / "mask_2" / f"{frame.frame_id}.png"
-                picture_path = out / "pictures" / f"{frame.frame_id}.png"
-                wanted = [label_path, mask_path] + ([picture_path] if pictures else [])
-                summary["frames"] += 1
-                done = all(p.exists() for p in wanted)
-                picture = pictures and picture_path
-                damage = done and _damaged_outputs(label_path, mask_path, picture, config)
-                if damage:  # a power cut or an edit: predicted again below
-                    print(f"{count}: {damage}; predicting it again", file=sys.stderr, flush=True)
-                if done and not damage:
-                    summary["resumed_frames"] += 1
-                    # No model call, but the cloud is read as the first run read it: "auto"
-                    # intensity units carry over to later frames (a resumed run read a dark Livox
-                    # scan after them in other units), and the summary counts it again.
-                    _, valid, counts = predictor.prepare(frame.points)
-                    tally(frame, valid, counts)
-                else:
-                    line = predict_frame(frame, count, label_path, mask_path, picture_path)
-                    say(line)
-                labels = kitti.read_labels(label_path, config.data)  # what the bag gets too
-                summary["objects"] += len(labels)
-                default_ns = position * 100_000_000  # 10 Hz for inputs without times
-                log_ns = frame.log_ns if frame.log_ns is not None else default_ns
-                if mount.rotated:  # the bag's cloud in the detections' frame
-                    yield log_ns, level_frame, mount.levelled(frame.points), labels, frame.stamp_ns
-                else:
-                    yield log_ns, frame.frame_name, frame.points, labels, frame.stamp_ns
-
-        def tally(frame, valid, counts) -> str:
-            """Counts a thinned or empty frame into the summary; the note its line gets."""
-            dropped = counts["dropped_points"]
-            summary["thinned_frames"] += int(dropped > 0)
-            note = (
-                f"; {dropped} of {dropped + config.data.max_points} valid points left out "
-                f"(data.max_points={config.data.max_points}, the rest spread over the scan)"
-                if dropped
-                else ""
-            )
-            if not valid.any():
-                summary["empty_frames"].append(frame.frame_id)
-                note += (
-                    f"; warning: none of its {len(frame.points)} points is valid "
-                    f"({counts['nonfinite_points']} non-finite, {counts['blind_points']} within "
-                    f"sim.min_range={config.sim.min_range} m of the sensor, "
-                    f"{counts['outside_points']} outside the workspace {workspace}): check the "
-                    "cloud's frame and units"
-                )
-            return note
-
-        def predict_frame(frame, count, label_path, mask_path, picture_path) -> str:
-            start = time.perf_counter()
-            padded, valid, _ = predictor.prepare(frame.points)
-            final, output, bev = predictor.infer(padded, valid)
-            ms = 1e3 * (time.perf_counter() - start)
-            if compiled:  # the first model call of this process compiles: not timed
-                latencies.append(ms)
-            compiled.append(True)
-            labels, ids = predictor.labels(final, output, boxes)
-            kitti.write_mask(mask_path, ids)
-            if pictures:
-                pic = render_prediction(config, padded, valid, output, bev, labels, ids)
-                fileio.atomic_write(picture_path, lambda p: pic.save(p, format="PNG"))
-            kitti.write_labels(label_path, labels, names)  # last: marks the frame done
-            note = tally(frame, valid, predictor.last_counts)
-            factor = predictor.last_intensity_factor
-            if factor != 1.0 and factor not in factors_said:
-                factors_said.add(factor)
-                say(
-                    f"{frame.frame_id}: intensity scaled by {factor:.6g} and clipped to [0, 1], "
-                    f"the simulator's reflectivity range ({intensity!r} units; --intensity sets "
-                    "them)"
-                )
-            done = summary["frames"] - summary["resumed_frames"]
-            left = total - (summary["frames"] + len(summary["bad_frames"]))
-            eta = (time.perf_counter() - started) / done * left
-            objects = f"{len(labels)} object" + ("" if len(labels) == 1 else "s")
-            return f"{count}: {objects}, {ms:.1f} ms{note} (ETA {_eta(eta)})"
-
+        frames = _PredictRun(predictor, out, total, pictures, boxes, skip_bad_frames, say)
         if bag_out is not None:
             from indoorbev_jax.rosbag import write_bag
 
-            write_bag(bag_out, run_frames(), names, "/points", "/detections")
+            names = config.data.class_names
+            write_bag(bag_out, frames.run(frames_in, level_frame), names, "/points", "/detections")
         else:
-            for _ in run_frames():
+            for _ in frames.run(frames_in, level_frame):
                 pass
         # A write killed less than a minute before this run outlived the clean-up at its
         # start; one from before the run started is no write in flight now (the 1 s floor
         # guards a run that was itself that short), as export does.
         _remove_stale_temporaries(out, max(time.time() - run_started, 1.0))
+        return frames.finish(input_path)
+
+
+def _check_out_paths(input_path, out: Path, bag_out) -> None:
+    """Refuses an ``--out`` or ``--bag-out`` that would replace INPUT (or each other)."""
+    if out.resolve() == Path(input_path).resolve():
+        raise ValueError(f"--out {out} is INPUT: its label_2/ and mask_2/ would be replaced")
+    if bag_out is None:
+        return
+    from indoorbev_jax.rosbag import check_bag_target
+
+    bag, source = Path(bag_out).resolve(), Path(input_path).resolve()
+    for other, what in ((source, "INPUT"), (out.resolve(), "--out")):
+        if bag == other or bag in other.parents:
+            raise ValueError(f"--bag-out {bag_out} would replace {what} {other}")
+    if _is_bag_folder(source) and source in bag.parents:
+        raise ValueError(f"--bag-out {bag_out} lies inside the INPUT bag {source}")
+    check_bag_target(bag_out, ("/points", "/detections"))
+
+
+class _PredictRun:
+    """One ``predict`` run over its frames: predicts each (or keeps a finished one), prints
+    its line and keeps the summary ``predict`` returns."""
+
+    def __init__(
+        self,
+        predictor: Predictor,
+        out: Path,
+        total: int,
+        pictures: bool,
+        boxes: str,
+        skip_bad: bool,
+        say: Callable[[str], None],
+    ):
+        self.predictor, self.config = predictor, predictor.config
+        self.out, self.total, self.pictures, self.boxes = out, total, pictures, boxes
+        self.skip_bad, self.say = skip_bad, say
+        grid, mount = self.config.grid, predictor.mount
+        z_range = [z - predictor.z_offset for z in grid.z_range]  # in the cloud's height
+        self.workspace = f"x {list(grid.x_range)}, y {list(grid.y_range)}, z {z_range} m"
+        if mount.rotated:
+            self.workspace += " in the level frame (--lidar-rpy)"
+        self.summary = {"frames": 0, "objects": 0, "thinned_frames": 0, "resumed_frames": 0,
+                        "bad_frames": [], "empty_frames": []}  # fmt: skip
+        self.latencies: list[float] = []
+        self.compiled = False
+        self.factors_said: set[float] = set()
+        self.started = time.perf_counter()
+
+    def run(self, frames_in: Iterator[Frame], level_frame: str | None) -> Iterator:
+        """Yields each frame's (log time ns, frame id, points, labels, stamp ns), the
+        messages of ``--bag-out``, once its outputs are written."""
+        summary, out, config, mount = self.summary, self.out, self.config, self.predictor.mount
+        for position, frame in enumerate(frames_in, 1):
+            check_interrupted()
+            count = f"[{position}/{self.total}] {frame.frame_id}"
+            if frame.error is not None:
+                if not self.skip_bad:
+                    raise type(frame.error)(
+                        f"{frame.error} (frame {frame.frame_id}; --skip-bad-frames skips it)"
+                    ) from None
+                summary["bad_frames"].append(frame.frame_id)
+                print(f"{count}: skipped: {frame.error}", file=sys.stderr, flush=True)
+                continue
+            label_path = out / "label_2" / f"{frame.frame_id}.txt"
+            mask_path = out / "mask_2" / f"{frame.frame_id}.png"
+            picture_path = out / "pictures" / f"{frame.frame_id}.png"
+            wanted = [label_path, mask_path] + ([picture_path] if self.pictures else [])
+            summary["frames"] += 1
+            done = all(p.exists() for p in wanted)
+            picture = self.pictures and picture_path
+            damage = done and _damaged_outputs(label_path, mask_path, picture, config)
+            if damage:  # a power cut or an edit: predicted again below
+                print(f"{count}: {damage}; predicting it again", file=sys.stderr, flush=True)
+            if done and not damage:
+                summary["resumed_frames"] += 1
+                # No model call, but the cloud is read as the first run read it: "auto"
+                # intensity units carry over to later frames (a resumed run read a dark Livox
+                # scan after them in other units), and the summary counts it again.
+                _, valid, counts = self.predictor.prepare(frame.points)
+                self._tally(frame, valid, counts)
+            else:
+                self.say(self._predict(frame, count, label_path, mask_path, picture_path))
+            labels = kitti.read_labels(label_path, config.data)  # what the bag gets too
+            summary["objects"] += len(labels)
+            default_ns = position * 100_000_000  # 10 Hz for inputs without times
+            log_ns = frame.log_ns if frame.log_ns is not None else default_ns
+            if mount.rotated:  # the bag's cloud in the detections' frame
+                yield log_ns, level_frame, mount.levelled(frame.points), labels, frame.stamp_ns
+            else:
+                yield log_ns, frame.frame_name, frame.points, labels, frame.stamp_ns
+
+    def _tally(self, frame: Frame, valid, counts) -> str:
+        """Counts a thinned or empty frame into the summary; the note its line gets."""
+        config, summary = self.config, self.summary
+        dropped = counts["dropped_points"]
+        summary["thinned_frames"] += int(dropped > 0)
+        note = (
+            f"; {dropped} of {dropped + config.data.max_points} valid points left out "
+            f"(data.max_points={config.data.max_points}, the rest spread over the scan)"
+            if dropped
+            else ""
+        )
+        if not valid.any():
+            summary["empty_frames"].append(frame.frame_id)
+            note += (
+                f"; warning: none of its {len(frame.points)} points is valid "
+                f"({counts['nonfinite_points']} non-finite, {counts['blind_points']} within "
+                f"sim.min_range={config.sim.min_range} m of the sensor, "
+                f"{counts['outside_points']} outside the workspace {self.workspace}): check "
+                "the cloud's frame and units"
+            )
+        return note
+
+    def _predict(self, frame: Frame, count: str, label_path, mask_path, picture_path) -> str:
+        """Predicts one frame and writes its outputs, its label file last; its line."""
+        predictor, summary = self.predictor, self.summary
+        start = time.perf_counter()
+        padded, valid, _ = predictor.prepare(frame.points)
+        final, output, bev = predictor.infer(padded, valid)
+        ms = 1e3 * (time.perf_counter() - start)
+        if self.compiled:  # the first model call of this process compiles: not timed
+            self.latencies.append(ms)
+        self.compiled = True
+        labels, ids = predictor.labels(final, output, self.boxes)
+        kitti.write_mask(mask_path, ids)
+        if self.pictures:
+            pic = render_prediction(self.config, padded, valid, output, bev, labels, ids)
+            fileio.atomic_write(picture_path, lambda p: pic.save(p, format="PNG"))
+        kitti.write_labels(label_path, labels, self.config.data.class_names)  # marks it done
+        note = self._tally(frame, valid, predictor.last_counts)
+        factor = predictor.last_intensity_factor
+        if factor != 1.0 and factor not in self.factors_said:
+            self.factors_said.add(factor)
+            self.say(
+                f"{frame.frame_id}: intensity scaled by {factor:.6g} and clipped to [0, 1], "
+                f"the simulator's reflectivity range ({predictor.intensity!r} units; "
+                "--intensity sets them)"
+            )
+        done = summary["frames"] - summary["resumed_frames"]
+        left = self.total - (summary["frames"] + len(summary["bad_frames"]))
+        eta = (time.perf_counter() - self.started) / done * left
+        objects = f"{len(labels)} object" + ("" if len(labels) == 1 else "s")
+        return f"{count}: {objects}, {ms:.1f} ms{note} (ETA {_eta(eta)})"
+
+    def finish(self, input_path) -> dict:
+        """The summary, said; a run that found no frame is an error naming INPUT."""
+        summary, say, config = self.summary, self.say, self.config
         frames = summary["frames"]
         if frames == 0:
             bad = f" ({len(summary['bad_frames'])} unreadable)" if summary["bad_frames"] else ""
             raise ValueError(f"{input_path}: no frames found{bad}")
-        if latencies:
-            lat = np.asarray(latencies)
+        if self.latencies:
+            lat = np.asarray(self.latencies)
             summary["latency_ms"] = {
                 "median": float(statistics.median(lat)),
                 "p90": float(np.percentile(lat, 90)),
@@ -812,7 +850,7 @@ def predict(
             }
         lat = summary.get("latency_ms")
         tail = f", median {lat['median']:.1f} ms/frame (first frame compiles)" if lat else ""
-        say(f"{frames} frames, {summary['objects']} objects written to {out}{tail}")
+        say(f"{frames} frames, {summary['objects']} objects written to {self.out}{tail}")
         if summary["resumed_frames"]:
             say(f"{summary['resumed_frames']} frames were done by an earlier run and kept")
         if summary["bad_frames"]:

@@ -295,6 +295,21 @@ def silence_hint(
     )
 
 
+def _silence_hint(node, input_name: str, received: int, topic: str, reliable: bool):
+    """``silence_hint`` for the input topic as the graph shows it now (its publishers, the
+    QoS they offer, other message types on it); never raises: it is only a hint."""
+    try:
+        infos = node.get_publishers_info_by_topic(input_name)
+        other_types = sorted({i.topic_type for i in infos} - {POINTCLOUD2})
+        infos = [i for i in infos if i.topic_type == POINTCLOUD2]
+        publishing = len(infos)
+        offered = [getattr(i.qos_profile.reliability, "name", "") for i in infos]
+        reliable_publishers = offered.count("RELIABLE")
+    except Exception:  # noqa: BLE001 - only a hint; never stop the node
+        publishing, reliable_publishers, other_types = 0, None, []
+    return silence_hint(received, publishing, topic, reliable, reliable_publishers, other_types)
+
+
 def run_detect_node(
     checkpoint: str,
     topic: str = "/livox/lidar",
@@ -385,6 +400,8 @@ def run_detect_node(
             failure.append(e)
             stop.set()
 
+    # Runs on the worker thread, started below once node, log, publishers, bag_names and
+    # recorder exist (the names are bound by then).
     def process_forever() -> None:
         last_log = time.monotonic()
         silence_checked = False
@@ -395,18 +412,7 @@ def run_detect_node(
                     silence_checked = True
                     with lock:
                         received = stats.received
-                    try:
-                        infos = node.get_publishers_info_by_topic(bag_names["input"])
-                        other_types = sorted({i.topic_type for i in infos} - {POINTCLOUD2})
-                        infos = [i for i in infos if i.topic_type == POINTCLOUD2]
-                        publishing = len(infos)
-                        offered = [getattr(i.qos_profile.reliability, "name", "") for i in infos]
-                        reliable_publishers = offered.count("RELIABLE")
-                    except Exception:  # noqa: BLE001 - only a hint; never stop the node
-                        publishing, reliable_publishers, other_types = 0, None, []
-                    hint = silence_hint(
-                        received, publishing, topic, reliable, reliable_publishers, other_types
-                    )
+                    hint = _silence_hint(node, bag_names["input"], received, topic, reliable)
                     if hint:
                         log.warning(hint)
                 continue
