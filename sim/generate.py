@@ -380,3 +380,16 @@ def jitted_generate(config: Config, split: str = "train", batch_size: int | None
 def jitted_draw(config: Config, split: str = "train", batch_size: int | None = None):
     """``draw_frames`` jitted for (config, split, B), cached per process."""
     return jax.jit(lambda key: draw_frames(key, config, split, batch_size))
+
+
+_MOVED_TO_REFERENCE = ("reference_frame", "reference_cast", "reference_footprints", "scene_numpy")
+
+
+def __getattr__(name: str):
+    # The sequential reference moved to ``reference.py`` (2026-12-07); scripts that read it
+    # here, as docs/SIMULATOR.md said to, still find it. Imported on first use: it imports us.
+    if name in _MOVED_TO_REFERENCE:
+        from indoorbev_sim import reference
+
+        return getattr(reference, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

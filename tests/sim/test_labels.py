@@ -531,3 +531,12 @@ def test_visibility_rays_inside_min_range_are_not_fired():
         np.testing.assert_allclose(info.visibility[b][v], ref["visibility"][slots], atol=1e-6)
         n += len(slots)
     assert n > 0
+
+
+def test_the_reference_is_still_found_where_the_docs_put_it():
+    """docs/SIMULATOR.md named ``generate.reference_frame`` until the sequential reference
+    moved to ``reference.py``; scripts reading it there still find the same functions."""
+    for name in ("reference_frame", "reference_cast", "reference_footprints", "scene_numpy"):
+        assert getattr(generate, name) is getattr(reference, name)
+    with pytest.raises(AttributeError, match="has no attribute 'reference_nothing'"):
+        generate.reference_nothing  # noqa: B018
