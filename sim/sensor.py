@@ -151,14 +151,13 @@ def scan(
     directions = jnp.asarray(directions, jnp.float32)
     if directions.ndim != 2 or directions.shape[-1] != 3:
         raise ValueError(f"directions must be [R, 3] (sensor frame), got {directions.shape}")
-    for name, tail in (("pos", (3,)), ("rot", (3, 3))):
+    # rot may also be MuJoCo's flat xmat layout, [9] or [B, 9].
+    for name, tails in (("pos", ((3,),)), ("rot", ((3, 3), (9,)))):
         shape = tuple(jnp.shape(getattr(pose, name)))
-        if shape[-len(tail) :] != tail or len(shape) > len(tail) + 1:
+        if not any(shape[-len(t) :] == t and len(shape) <= len(t) + 1 for t in tails):
             note = " (a rotation matrix: pose_from_body / pose_from_site)" if name == "rot" else ""
-            raise ValueError(
-                f"pose.{name}: expected {list(tail)} or [B, {', '.join(map(str, tail))}]{note}, "
-                f"got shape {list(shape)}"
-            )
+            wanted = " or ".join(f"{list(t)} or [B, {', '.join(map(str, t))}]" for t in tails)
+            raise ValueError(f"pose.{name}: expected {wanted}{note}, got shape {list(shape)}")
     pos = jnp.asarray(pose.pos, jnp.float32).reshape(-1, 3)
     rot = jnp.asarray(pose.rot, jnp.float32).reshape(-1, 3, 3)
     nposes = max(pos.shape[0], rot.shape[0])

@@ -224,6 +224,15 @@ def test_full_chain_is_deterministic_and_vmaps():
         one = aug.augment(keys[i], jax.tree.map(lambda x, i=i: x[i], batch), GRID, CFG.augment)
         np.testing.assert_allclose(one.points, a.points[i], atol=1e-5)
         np.testing.assert_array_equal(one.targets.masks, a.targets.masks[i])
+    # The whole Config for a section failed on an AttributeError of some field.
+    with pytest.raises(
+        TypeError, match=r"cfg: expected AugmentConfig, got Config; pass config\.augment"
+    ):
+        aug.augment_batch(jax.random.key(7), batch, GRID, CFG)
+    with pytest.raises(
+        TypeError, match=r"grid: expected GridConfig, got Config; pass config\.grid"
+    ):
+        aug.augment_batch(jax.random.key(7), batch, CFG, CFG.augment)
 
 
 def test_augmentation_is_the_same_under_x64():

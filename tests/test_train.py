@@ -157,6 +157,12 @@ def test_run_sweep_checks_hand_built_hypers_before_writing(tmp_path):
     with pytest.raises(ValueError, match=r"--learning-rates: expected at least one value"):
         stack_hypers(CFG, [], {})
     np.testing.assert_array_equal(stack_hypers(CFG, 1e-3, {}).learning_rate, np.float32([1e-3]))
+    one = stack_hypers(CFG, 1e-3, {"dice": 2.0})  # scalars: one model
+    np.testing.assert_array_equal(one.weights["dice"], np.float32([2.0]))
+    with pytest.raises(
+        ValueError, match=r"--learning-rates: expected one value per model, got shape \(1, 2\)"
+    ):
+        stack_hypers(CFG, [[1e-3, 2e-3]], {})
 
 
 def test_hypers_json_keeps_the_values_given():

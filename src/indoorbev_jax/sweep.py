@@ -50,7 +50,11 @@ from indoorbev_jax.train import (
 def stack_hypers(config: Config, learning_rates, weight_overrides: dict[str, list[float]]) -> Hyper:
     """K ``Hyper`` stacked on a leading axis; weights not overridden come from the config."""
     base = Hyper.from_config(config)
-    learning_rates = np.atleast_1d(np.asarray(learning_rates, np.float64)).tolist()
+    learning_rates = _values("learning-rates", learning_rates)
+    weight_overrides = {
+        name: None if v is None else _values(f"{name}-weights", v)
+        for name, v in weight_overrides.items()
+    }
     k = len(learning_rates)
     if k == 0:
         raise ValueError("--learning-rates: expected at least one value (K >= 1 models)")
@@ -78,6 +82,14 @@ def stack_hypers(config: Config, learning_rates, weight_overrides: dict[str, lis
             raise ValueError(f"--{name}-weights: expected {k} values, got {len(values)}")
         weights[name] = jnp.asarray(values if values is not None else [value] * k, jnp.float32)
     return Hyper(learning_rate=jnp.asarray(learning_rates, jnp.float32), weights=weights)
+
+
+def _values(flag: str, values) -> list[float]:
+    """A number or a flat sequence of numbers as a list (a nested one is refused by flag)."""
+    array = np.atleast_1d(np.asarray(values, np.float64))
+    if array.ndim != 1:
+        raise ValueError(f"--{flag}: expected one value per model, got shape {array.shape}")
+    return array.tolist()
 
 
 def check_hypers(hypers: Hyper, config: Config) -> int:

@@ -145,9 +145,14 @@ def test_intensity_from_reflectivity_and_incidence(scene):
         _scan(mx, dx, pose, dirs, jax.random.key(0), cfg, reflectivity=refl[:2])
     quat = sensor.Pose(jnp.array([0.0, 0.0, 1.0]), jnp.array([1.0, 0.0, 0.0, 0.0]))
     with pytest.raises(
-        ValueError, match=r"pose\.rot: expected \[3, 3\] or \[B, 3, 3\] \(a rotation matrix"
+        ValueError, match=r"pose\.rot: expected \[3, 3\] or \[B, 3, 3\] or \[9\] .*got shape \[4\]"
     ):
         _scan(mx, dx, quat, dirs, jax.random.key(0), cfg)
+    # MuJoCo's flat xmat (MjData.site_xmat[i], [9]) is a rotation matrix, read as [3, 3].
+    flat = sensor.Pose(pose.pos, jnp.eye(3).reshape(9))
+    got = _scan(mx, dx, flat, dirs, jax.random.key(0), cfg, reflectivity=refl)
+    want = _scan(mx, dx, pose, dirs, jax.random.key(0), cfg, reflectivity=refl)
+    np.testing.assert_array_equal(np.asarray(got.points), np.asarray(want.points))
 
 
 def test_batched_scenes_and_poses(scene):
