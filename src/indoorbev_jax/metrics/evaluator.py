@@ -24,7 +24,6 @@ from indoorbev_jax.metrics.ap import (
 from indoorbev_jax.metrics.panoptic import _PanopticStats
 from indoorbev_jax.types import Targets, _from_mapping
 
-
 DEFAULT_GROUPING = "tag"  # the name of ``gt_tags`` given as one array
 
 
