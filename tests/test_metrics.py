@@ -970,3 +970,17 @@ def test_a_refused_frame_or_batch_leaves_the_evaluator_as_it_was():
     with pytest.raises(ValueError, match=rf"dets\[{B}\]: expected masks \[D, H, W\]"):
         ev.add_frame(**dict(frame, det=(m, np.array([0]), np.array([0.9, 0.8]))))
     np.testing.assert_equal(ev.compute(), before)
+
+
+def test_metrics_keeps_the_names_of_the_one_module_it_was():
+    """metrics.py became a package (ap, panoptic, evaluator); every name it had, its helpers
+    included, is still read from ``indoorbev_jax.metrics``."""
+    from indoorbev_jax import metrics
+    from indoorbev_jax.metrics import ap, evaluator, panoptic
+
+    assert metrics.mask_ap is ap.mask_ap and metrics.Evaluator is evaluator.Evaluator
+    assert metrics._coco_precision is ap._coco_precision
+    assert metrics._PanopticStats is panoptic._PanopticStats
+    assert metrics._tag_groupings is evaluator._tag_groupings
+    with pytest.raises(AttributeError, match="has no attribute 'nothing_here'"):
+        metrics.nothing_here  # noqa: B018

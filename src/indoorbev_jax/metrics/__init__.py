@@ -16,6 +16,9 @@ Undefined values: AP follows pycocotools (-1 where a class has no ground truth, 
 when no class has any); the other metrics use NaN. ``format_table`` prints both as "-".
 """
 
+from indoorbev_jax.metrics import ap as _ap
+from indoorbev_jax.metrics import evaluator as _evaluator
+from indoorbev_jax.metrics import panoptic as _panoptic
 from indoorbev_jax.metrics.ap import (
     class_confusion,
     confusion_json,
@@ -49,3 +52,12 @@ __all__ = [
     "paper_miou",
     "semantic_miou",
 ]
+
+
+def __getattr__(name: str):
+    # metrics was one module until 2026-12-07: code that reached its helpers by that name
+    # (metrics._coco_precision, say) still finds them.
+    for module in (_ap, _panoptic, _evaluator):
+        if name in vars(module):
+            return vars(module)[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
