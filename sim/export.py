@@ -284,10 +284,7 @@ def export(
                 bar.update(len(scenes[j]))
         for split, ids in splits.items():
             kitti.write_split(root, split, ids)
-        # A write killed less than a minute before this resume outlived the first clean-up; one
-        # from before this run started is no write in flight now (they take milliseconds; the
-        # 1 s floor only guards a run that was itself that short).
-        _remove_stale_temporaries(root, max(time.time() - started, 1.0))
+        _remove_stale_temporaries(root, fileio.age_since(started))
         if rosbag is not None:
             all_ids = sorted(i for ids in splits.values() for i in ids)
             write_rosbag(root, rosbag, all_ids, config)

@@ -98,6 +98,14 @@ def remove_stale_temporaries(folder: Path, names: str, min_age: float = 60.0) ->
             pass
 
 
+def age_since(started: float) -> float:
+    """``remove_stale_temporaries``' ``min_age`` at the end of a job that has held its
+    folder's lock since ``started`` (``time.time()``): a write killed less than a minute
+    before the job outlived the clean-up at its start, and one from before the job started
+    is no write in flight now. The 1 s floor guards a job that was itself that short."""
+    return max(time.time() - started, 1.0)
+
+
 @contextlib.contextmanager
 def hold_folder(folder: str | os.PathLike, job: str, place: str, take: bool = True):
     """Holds an exclusive ``flock`` on ``folder/.lock`` (its content: ``job`` and the pid)

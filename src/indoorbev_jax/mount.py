@@ -156,7 +156,7 @@ class LidarMount:
         (``augment.rotation`` pi), which turns the direction a tilt faces as well, so only
         the size of the tilt counts (a roll of 10 is a pitch of 10 turned by 90 degrees)."""
         trained = LidarMount(*trained_rpy)
-        level = trained.tilt() < 1e-9  # maybe turned about z: yaw leaves a level lidar level
+        level = trained.tilt() < 1e-9  # maybe turned about z
         if level and not trained_jitter:
             # Yaw leaves a level lidar level: only the tilt of its z axis counts.
             tilt = self.tilt()

@@ -676,20 +676,17 @@ def predict(
             print(f"note: --level-frame {level_frame!r} names the frame of --bag-out's messages; "
                   "without --bag-out it is unused (KITTI labels carry no frame id)",
                   file=sys.stderr, flush=True)  # fmt: skip
-        frames = _PredictRun(predictor, out, total, pictures, boxes, skip_bad_frames, say)
+        job = _PredictRun(predictor, out, total, pictures, boxes, skip_bad_frames, say)
         if bag_out is not None:
             from indoorbev_jax.rosbag import write_bag
 
             names = config.data.class_names
-            write_bag(bag_out, frames.run(frames_in, level_frame), names, "/points", "/detections")
+            write_bag(bag_out, job.run(frames_in, level_frame), names, "/points", "/detections")
         else:
-            for _ in frames.run(frames_in, level_frame):
+            for _ in job.run(frames_in, level_frame):
                 pass
-        # A write killed less than a minute before this run outlived the clean-up at its
-        # start; one from before the run started is no write in flight now (the 1 s floor
-        # guards a run that was itself that short), as export does.
-        _remove_stale_temporaries(out, max(time.time() - run_started, 1.0))
-        return frames.finish(input_path)
+        _remove_stale_temporaries(out, fileio.age_since(run_started))
+        return job.finish(input_path)
 
 
 def _check_out_paths(input_path, out: Path, bag_out) -> None:
