@@ -35,10 +35,24 @@ def test_plot_curves_names_the_malformed_line(tmp_path):
     assert [r["step"] for r in log["train"]] == [50] and log["eval"][0]["pq"] is None
 
 
-def test_eval_sim_rejects_a_frame_count_the_batch_does_not_divide():
+def test_evaluate_sim_names_a_bad_frame_set():
+    from indoorbev_jax import sim_eval
+
+    tiny = Config.tiny()
+    with pytest.raises(ValueError, match="frames 10 must be a multiple of batch 8"):
+        sim_eval.evaluate_sim(tiny, None, "test", 10, 8, 0, progress=False)
+    with pytest.raises(ValueError, match="batch: expected a whole number > 0, got 0"):
+        sim_eval.evaluate_sim(tiny, None, "test", 8, 0, 0, progress=False)
+    with pytest.raises(ValueError, match=r"seed: expected a whole number in \[0, 2\*\*32\)"):
+        sim_eval.evaluate_sim(tiny, None, "test", 8, 8, -1, progress=False)
+    # Only the held-out sets have a root seed of their own; train frames need one given.
+    with pytest.raises(ValueError, match="split: expected 'test' or 'val' .* got 'train'"):
+        sim_eval.evaluate_sim(tiny, None, "train", 8, 8, progress=False)
+    assert (sim_eval.default_seed("test"), sim_eval.default_seed("val")) == (1_000_003, 1_000_033)
+    # The script reads the library's frame sets: one definition of the held-out seeds.
     eval_sim = _script("eval_sim")
-    with pytest.raises(ValueError, match="--frames 10 must be a multiple of --batch 8"):
-        eval_sim.evaluate_sim(Config.tiny(), None, "test", 10, 8, 0, progress=False)
+    assert eval_sim.evaluate_sim is sim_eval.evaluate_sim
+    assert (eval_sim.TEST_SEED, eval_sim.VAL_SEED) == (sim_eval.TEST_SEED, sim_eval.VAL_SEED)
 
 
 def test_eval_sim_sweep_fuses_the_views_at_each_rows_mask_threshold():
