@@ -12,9 +12,6 @@ import argparse
 import math
 import os
 import sys
-from pathlib import Path
-
-import numpy as np
 
 from indoorbev_jax.checks import check_seed, whole_bound
 from indoorbev_jax.interrupts import INTERRUPTED, catch_interrupts
@@ -258,14 +255,12 @@ def dataset_check(args: argparse.Namespace) -> int:
     """Validates every frame of a dataset folder; prints statistics and the first problems."""
     from indoorbev_jax.config import ConfigError
     from indoorbev_jax.data import kitti
-    from indoorbev_jax.data.dataset import KittiDataset, dataset_config
+    from indoorbev_jax.data.check import check_dataset
+    from indoorbev_jax.data.dataset import dataset_config
 
-    root = Path(args.root)
-    problems: list[str] = []
-    warnings: list[str] = []
     try:
-        config, source = dataset_config(root, args.preset, args.set)
-        ds = KittiDataset(root, args.split, config)
+        config, source = dataset_config(args.root, args.preset, args.set)
+        report = check_dataset(args.root, args.split, config, source, progress=True)
     except (kitti.DatasetError, OSError) as e:
         # stderr: `dataset check ROOT > report.txt` must still show it
         print(f"indoorbev dataset check: error: {e}", file=sys.stderr)
@@ -273,104 +268,8 @@ def dataset_check(args: argparse.Namespace) -> int:
     except ConfigError as e:  # a bad --set or --preset: a usage error, as in train.py
         print(f"indoorbev dataset check: error: {e}", file=sys.stderr)
         return 2
-    if len(ds) == 0:
-        problems.append(f"{root}: no frames in split {args.split or 'all'}")
-    warnings.extend(_unpaired_files(Path(root), ds.ids, every_frame=args.split is None))
-    class_counts = np.zeros(config.num_classes, np.int64)
-    valid_points, raw_points = [], []
-    invalid = dropped_points = dropped_objects = 0
-    for k in range(len(ds)):
-        try:
-            item, stats = ds.load(k)
-        except (kitti.DatasetError, OSError) as e:
-            problems.append(str(e))
-            continue
-        t = item.targets
-        class_counts += np.bincount(t.classes[t.valid], minlength=config.num_classes)
-        raw_points.append(stats.raw_points)
-        valid_points.append(stats.valid_points)
-        invalid += stats.invalid_points
-        dropped_points += stats.dropped_points
-        # Legal, so warned about rather than failed: a blocked sensor gives an empty cloud and
-        # labels may reach past the grid; but points or labels in mm or in a map frame look so.
-        if stats.raw_points == 0:
-            warnings.append(f"{ds.ids[k]}: an empty cloud")
-        elif stats.valid_points == 0:
-            warnings.append(
-                f"{ds.ids[k]}: none of its {stats.raw_points} points is valid (check the cloud's "
-                "frame and units against the grid's workspace)"
-            )
-        seen = np.asarray(item.points)[np.asarray(item.point_valid), 3]
-        if seen.size and seen.max() > 1.0:  # trained on, not rescaled: unlike predict's input
-            warnings.append(
-                f"{ds.ids[k]}: intensity up to {seen.max():g}; the model takes [0, 1] (the "
-                "simulator's reflectivity): write the clouds scaled (Livox 0-255: / 255)"
-            )
-        off_grid = int((t.valid & ~t.masks.any(axis=(1, 2))).sum())
-        if off_grid:  # the evaluator leaves such objects out
-            warnings.append(
-                f"{ds.ids[k]}: {off_grid} of {int(t.valid.sum())} objects cover no cell of the "
-                f"grid x {list(config.grid.x_range)} y {list(config.grid.y_range)} m (check "
-                "the labels' frame and units, or --preset)"
-            )
-        if stats.dropped_objects:
-            dropped_objects += stats.dropped_objects
-            problems.append(
-                f"{ds.ids[k]}: {stats.objects} objects, only the first "
-                f"{config.data.max_objects} fit data.max_objects"
-            )
-    print(f"dataset {root} (split: {args.split or 'all'}, {source})")
-    print(f"frames: {len(ds)} ({len(ds) - len(valid_points)} unreadable)")
-    print("objects per class:")
-    for name, n in zip(config.data.class_names, class_counts, strict=True):
-        print(f"  {name:<8} {n:>8}")
-    print(f"  {'total':<8} {class_counts.sum():>8}")
-    if valid_points:
-        v = np.asarray(valid_points)
-        print(
-            f"points per frame (valid): min {v.min()}  median {int(np.median(v))}  "
-            f"mean {v.mean():.1f}  max {v.max()}  (raw total {sum(raw_points)})"
-        )
-    print(
-        f"invalid points (non-finite, within sim.min_range={config.sim.min_range} m of the "
-        f"sensor, or outside the workspace): {invalid}"
-    )
-    print(f"points beyond data.max_points={config.data.max_points}: {dropped_points}")
-    if dropped_objects:
-        print(f"objects beyond data.max_objects: {dropped_objects}")
-    for kind, found in (("warnings", warnings), ("problems", problems)):
-        if found:
-            print(f"{kind}: {len(found)}; the first {min(len(found), args.max_problems)}:")
-            for p in found[: args.max_problems]:
-                print(f"  {p}")
-    if problems:
-        return 1
-    print("no problems found" + (f" ({len(warnings)} warnings above)" if warnings else ""))
-    return 0
-
-
-def _unpaired_files(root: Path, ids: list[str], every_frame: bool) -> list[str]:
-    """Warnings for clouds without labels (not frames: a lost label file, say) and, where
-    ``mask_2/`` exists, frames without a mask (their footprints fall back to the boxes)."""
-    from indoorbev_jax.data import kitti
-
-    found = []
-    if every_frame:
-        clouds = {p.stem for p in (root / "velodyne").glob("*.bin") if not kitti.is_hidden(p)}
-        orphans = sorted(clouds - set(ids))
-        if orphans:
-            found.append(
-                f"{root / 'velodyne'}: {len(orphans)} cloud(s) have no label_2 file, so are no "
-                f"frame, e.g. {[f'{i}.bin' for i in orphans[:5]]}"
-            )
-    if (root / "mask_2").is_dir():
-        no_mask = [i for i in ids if not kitti.frame_paths(root, i)["mask"].exists()]
-        if no_mask:
-            found.append(
-                f"{root / 'mask_2'}: {len(no_mask)} frame(s) have no mask, so their footprints "
-                f"are the label boxes, e.g. {[f'{i}.png' for i in no_mask[:5]]}"
-            )
-    return found
+    print(report.format(args.max_problems))
+    return 0 if report.ok else 1
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -232,6 +232,32 @@ def test_dataset_check_cli(tmp_path, capsys):
     assert "indoorbev dataset check: error: " in capsys.readouterr().err
 
 
+def test_check_dataset_reports_what_the_frames_hold(tmp_path):
+    """The Python API of ``dataset check``: counts re-derived from the label files and the
+    clouds, and an unreadable frame a problem of the report, not an exception."""
+    from indoorbev_jax.data.check import check_dataset
+
+    make_dataset(tmp_path)
+    report = check_dataset(tmp_path, "train", CFG)
+    ids = kitti.read_split(tmp_path, "train")
+    labels = [kitti.read_labels(tmp_path / "label_2" / f"{i}.txt", CFG.data) for i in ids]
+    expected = np.bincount(np.concatenate([lab.classes for lab in labels]), minlength=NUM_CLASSES)
+    np.testing.assert_array_equal(report.class_counts, expected)
+    assert report.ok and report.frames == 3 and report.source == "preset tiny"
+    clouds = [np.fromfile(tmp_path / "velodyne" / f"{i}.bin", np.float32) for i in ids]
+    assert report.raw_points == [c.size // 4 for c in clouds] == [500, 0, 10]
+    assert report.invalid_points == 5 + 5  # NaN rows and x = 50 m, in frame 000000 only
+    assert "mask_2: 2 frame(s) have no mask" in report.warnings[0]  # 000001 has one
+    assert report.warnings[1:] == ["000001: an empty cloud"]
+    (tmp_path / "label_2" / "000002.txt").write_text("Table 1 2\n")
+    report = check_dataset(tmp_path, "train", CFG)
+    assert not report.ok and len(report.valid_points) == 2
+    assert "000002.txt:1: expected 15 fields" in report.problems[0]
+    assert "frames: 3 (1 unreadable)" in report.format()
+    # Without a config: the folder's export.json (here none: the small preset).
+    assert check_dataset(tmp_path, "train").config == Config.small()
+
+
 def test_dataset_check_names_lost_files(tmp_path, capsys):
     """A cloud whose label file is lost is no frame, and a frame without a mask where
     mask_2/ exists falls back to its boxes: both were passed over in silence. A split
