@@ -633,7 +633,10 @@ def cast_geometry(
             f"max_range: expected a scalar or one value per scene [B] = [{nscene}], got shape "
             f"{list(jnp.shape(max_range))}"
         )
+    if not isinstance(mr, jax.core.Tracer) and bool(jnp.isnan(mr).any()):
+        raise ValueError(f"max_range: NaN; expected metres (inf: no limit), got {max_range!r}")
     mr = jnp.broadcast_to(mr, (nscene,))
+    castable &= ~jnp.isnan(mr)[:, None]  # traced NaN (unseen above): every ray misses
     if method == "jax":
         dist, gid = _cast_jax(geo, dirs, origin, mr)
     else:
@@ -679,7 +682,8 @@ def cast_rays(
         length < mjMINVAL, or not finite, is a miss; ``mj_ray`` stops the process on the
         first and gives no reliable answer for the second). With one
         scene, B ray sets [B, R, 3] are cast in that scene, giving [B, R].
-      max_range: float scalar or [B]; hits farther than this count as misses.
+      max_range: float scalar or [B]; hits farther than this count as misses (inf: no
+        limit; NaN is refused, or under ``jax.jit`` makes every ray of its scene miss).
       geomgroup: optional 6 flags (``mj_ray``'s geomgroup); None includes every group.
       flg_static: include geoms of bodies welded to the world (``mj_ray``'s flg_static).
       bodyexclude: body id whose geoms are ignored (-1: none).

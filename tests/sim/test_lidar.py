@@ -254,6 +254,16 @@ def test_filters_max_range_and_plane_conventions(method):
     # The finite plane is hit from above only: from below every ray misses it.
     dist, gid = lidar.cast_rays(mx, dx, jnp.array([0.0, 0.0, -1.5]), dirs, 30.0, method=method)
     assert not np.any(np.asarray(gid) == 0)
+    # inf: no limit (mj_ray's answer); NaN, which compared as no limit, is refused, and
+    # under jit (where it cannot be seen) every ray misses rather than every hit passing.
+    ref_d, ref_g = mj_ray_reference(m, d, origin, dirs, np.inf)
+    dist, gid = lidar.cast_rays(mx, dx, jnp.asarray(origin), dirs, np.inf, method=method)
+    np.testing.assert_array_equal(np.asarray(gid), ref_g)
+    with pytest.raises(ValueError, match=r"max_range: NaN; expected metres \(inf: no limit\)"):
+        lidar.cast_rays(mx, dx, jnp.asarray(origin), dirs, np.nan, method=method)
+    cast = jax.jit(lambda r: lidar.cast_rays(mx, dx, jnp.asarray(origin), dirs, r, method=method))
+    dist, gid = cast(jnp.float32(np.nan))
+    assert (np.asarray(gid) == -1).all() and (np.asarray(dist) == -1).all()
 
 
 @pytest.mark.parametrize("method", ["binned", "brute", "jax"])
