@@ -126,8 +126,9 @@ def scan(
     Args:
       model, data: MJX model/data of one scene or B scenes (as ``lidar.cast_rays``).
       pose: sensor pose world <- sensor, ``pos`` [3] or [B, 3], ``rot`` [3, 3] or [B, 3, 3].
-      directions: float [R, 3] unit ray directions in the sensor frame (e.g.
-        ``pattern.frame(k).directions``), shared by all scenes.
+      directions: float [R, 3] ray directions in the sensor frame (e.g.
+        ``pattern.frame(k).directions``), shared by all scenes; scaled to unit length (a
+        zero or non-finite one is a miss).
       key: ``jax.random`` key, one for all B scenes (each scene and ray draws its own noise).
       config: ``SensorConfig``.
       reflectivity: optional float [G] or [B, G] per-geom reflectivity in [0, 1].
@@ -151,6 +152,10 @@ def scan(
     directions = jnp.asarray(directions, jnp.float32)
     if directions.ndim != 2 or directions.shape[-1] != 3:
         raise ValueError(f"directions must be [R, 3] (sensor frame), got {directions.shape}")
+    # Ranges, the min-range test and intensity assume unit rays: scale others to length 1
+    # (a unit pattern, within rounding, is left bit for bit as it is).
+    length = jnp.linalg.norm(directions, axis=-1, keepdims=True)
+    directions = jnp.where(jnp.abs(length - 1.0) > 1e-4, directions / length, directions)
     # rot may also be MuJoCo's flat xmat layout, [9] or [B, 9].
     for name, tails in (("pos", ((3,),)), ("rot", ((3, 3), (9,)))):
         shape = tuple(jnp.shape(getattr(pose, name)))

@@ -60,6 +60,14 @@ def test_points_are_hits_in_the_sensor_frame(scene):
     pts = np.asarray(s.points)[ref_valid]
     np.testing.assert_allclose(pts[:, :3], dirs[ref_valid] * ref[ref_valid, None], atol=2e-4)
     assert np.all(np.asarray(s.points)[~ref_valid] == 0)
+    # Directions of any length are rays: the same points in metres, the same intensity
+    # (they scaled the range, the min-range test and the incidence cosine). Zero: a miss.
+    scaled = dirs * np.linspace(0.5, 3.0, len(dirs), dtype=np.float32)[:, None]
+    scaled[0] = 0.0
+    t = _scan(mx, dx, pose, scaled, jax.random.key(0), cfg)
+    np.testing.assert_array_equal(np.asarray(t.valid)[1:], ref_valid[1:])
+    assert not t.valid[0] and np.all(np.asarray(t.points[0]) == 0)
+    np.testing.assert_allclose(np.asarray(t.points)[1:], np.asarray(s.points)[1:], atol=2e-4)
 
 
 def test_noise_dropout_and_range_limits(scene):
