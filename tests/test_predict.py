@@ -77,6 +77,33 @@ def test_write_bag_clears_only_its_own_leftovers(tmp_path):
     assert write_bag(bag, [frame, frame], CFG.data.class_names, "/points", "/objects") == 2
 
 
+def test_a_second_write_of_one_bag_is_refused_while_the_first_runs(tmp_path):
+    """Two predict runs given one --bag-out (from different --out folders) shared the bag's
+    temporary folder: the second deleted the first's half-written bag, which then failed."""
+    from indoorbev_jax.rosbag import count_clouds, write_bag
+
+    frame = (10**9, "lidar", np.zeros((3, 4), np.float32), kitti.ObjectLabels.empty())
+    bag = tmp_path / "out_bag"
+    names = CFG.data.class_names
+
+    def frames():
+        yield frame
+        with pytest.raises(
+            ValueError,
+            match=r"out_bag\.partial: in use by another write of this bag \(pid \d+\); wait "
+            "for it to end, or use another bag folder",
+        ):
+            write_bag(bag, [frame], names, "/points", "/objects")
+        yield frame
+
+    assert write_bag(bag, frames(), names, "/points", "/objects") == 2
+    assert count_clouds(bag, "/points") == 2 and not (tmp_path / "out_bag.partial").exists()
+    # A write killed (-9) leaves its lock file: the next one is not refused.
+    (tmp_path / "out_bag.partial").mkdir()
+    (tmp_path / "out_bag.partial" / ".lock").write_text("write of this bag, pid 1\n")
+    assert write_bag(bag, [frame], names, "/points", "/objects") == 1
+
+
 def test_a_bag_folder_holding_another_file_is_never_replaced(tmp_path):
     """``check_bag_target`` replaces only a bag on the same topics with nothing else in its
     folder: a user's file put into a bag written before must stop the rewrite, not be deleted."""

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from indoorbev_jax.data import kitti
+from indoorbev_jax.fileio import hold_folder
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
@@ -484,7 +485,7 @@ def check_partial(bag: Path) -> Path:
     """``partial_path(bag)``, refused when it holds files an interrupted write of ``bag``
     does not leave (those are deleted before the write)."""
     partial = partial_path(bag)
-    ours = {bag.name, f"{bag.name}.old"}
+    ours = {bag.name, f"{bag.name}.old", ".lock"}
     if partial.exists() and not partial.is_dir():
         raise FileExistsError(f"{partial}: a file where the bag's temporary folder goes; move it")
     if partial.is_dir() and any(p.name not in ours for p in partial.iterdir()):
@@ -510,18 +511,26 @@ def write_bag(
     folder and renamed into place, so an interrupted write never leaves a bag under the
     final name; an existing ``bag`` is replaced only when ``check_bag_target`` allows it.
     """
+    bag = Path(bag)
+    check_bag_target(bag, (points_topic, objects_topic))
+    partial = check_partial(bag)
+    # Two writes of one bag (two predict runs given one --bag-out) shared its temporary
+    # folder: the second deleted the first's half-written bag. The first now holds it.
+    with hold_folder(partial, "write of this bag", "bag folder"):
+        return _write_bag_into(bag, partial, frames, class_names, points_topic, objects_topic)
+
+
+def _write_bag_into(bag: Path, partial: Path, frames, class_names, points_topic, objects_topic):
+    """``write_bag``'s writing, under the lock on its temporary folder ``partial``."""
     import sqlite3
 
     from rosbags.rosbag2 import Writer, WriterError
 
     ts = typestore()
-    bag = Path(bag)
-    check_bag_target(bag, (points_topic, objects_topic))
-    partial = check_partial(bag)
     replaced = partial / f"{bag.name}.old"  # the bag this write replaces, on its way out
-    shutil.rmtree(partial, ignore_errors=True)  # an earlier write of this bag, cut short
-    partial.mkdir(parents=True)
     tmp = partial / bag.name
+    for stale in (tmp, replaced):  # left by an earlier write of this bag, cut short
+        shutil.rmtree(stale, ignore_errors=True)
     count = 0
     try:
         with Writer(tmp, version=8) as writer:
