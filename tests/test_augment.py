@@ -135,6 +135,42 @@ def test_box_noise_moves_points_with_boxes_without_new_overlap():
     check_consistent(out)
 
 
+def test_box_noise_moves_each_footprint_with_its_box():
+    """Each moved footprint is the old one under the box's own move, read back from the
+    targets (shift = the centre's change, turn = the yaw's, scale = the sizes' ratio) and
+    resampled here in numpy. A footprint turned or shifted the other way passed before."""
+    frame = make_frame()
+    t0 = frame.targets
+    cfg = dataclasses.replace(OFF, box_noise_prob=1.0, box_translation_std=0.3,
+                              box_yaw_std=0.5, box_scale_std=0.1)  # fmt: skip
+    h, w = GRID.shape
+    cols, rows = np.meshgrid(np.arange(w), np.arange(h))
+    px = GRID.x_range[0] + (cols + 0.5) * GRID.cell_size  # destination cell centres
+    py = GRID.y_range[0] + (rows + 0.5) * GRID.cell_size
+    moved = 0
+    for seed in range(6):
+        t = aug.box_noise(jax.random.key(seed), frame, GRID, cfg).targets
+        for k in np.flatnonzero(np.asarray(t0.valid)):
+            c, new_c = np.asarray(t0.pos[k, :2], np.float64), np.asarray(t.pos[k, :2], np.float64)
+            turn = float(t.yaw[k] - t0.yaw[k])
+            scale = float(t.dims[k, 0] / t0.dims[k, 0])
+            moved += not np.allclose(new_c, c)
+            cos, sin = np.cos(turn), np.sin(turn)
+            dx, dy = px - new_c[0], py - new_c[1]  # source = c + R(-turn) (p - c') / scale
+            sx = c[0] + (cos * dx + sin * dy) / scale
+            sy = c[1] + (-sin * dx + cos * dy) / scale
+            col = np.floor((sx - GRID.x_range[0]) / GRID.cell_size).astype(int)
+            row = np.floor((sy - GRID.y_range[0]) / GRID.cell_size).astype(int)
+            inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+            want = np.where(inside, np.asarray(t0.masks[k])[row.clip(0, h - 1), col.clip(0, w - 1)],
+                            False)  # fmt: skip
+            got = np.asarray(t.masks[k])
+            # float32 against float64: a cell centre mapped onto a source cell's edge may go
+            # either way; a wrong turn or shift moves a whole object's worth of cells.
+            assert (got != want).sum() <= 2, (seed, k, (got != want).sum(), want.sum())
+    assert moved >= 6  # the check saw moved boxes, not only kept ones
+
+
 def test_point_noise_only_fills_free_slots_and_stays_in_workspace():
     frame = make_frame()
     n_valid = int(frame.point_valid.sum())
@@ -211,6 +247,22 @@ def test_gt_sampling_pastes_collision_free_objects_with_their_points():
         assert masks[k].any()
         assert inside[k].sum() >= 60  # its pasted points came along
     check_consistent(out)
+    # Each pasted footprint lies on its pasted box (the database's are box-shaped here). A
+    # patch pasted transposed passed: an oblong object shows it, so the table alone is pasted.
+    from indoorbev_jax.data.rasterize import box_masks
+
+    tables = jax.tree.map(lambda x: x[:1], db)  # the database's table alone
+    keys = jax.random.split(jax.random.key(5), 32)
+    runs = jax.jit(jax.vmap(lambda k: aug.gt_sampling(k, frame, tables, GRID, cfg).targets))(keys)
+    pasted = 0
+    for seed in range(len(keys)):
+        t = jax.tree.map(lambda x, seed=seed: x[seed], runs)
+        for k in range(3, int(t.valid.sum())):
+            box = jnp.stack([t.pos[k, 0], t.pos[k, 1], t.dims[k, 0], t.dims[k, 1], t.yaw[k]])
+            a, b = np.asarray(t.masks[k]), np.asarray(box_masks(box[None], GRID)[0])
+            assert (a & b).sum() / (a | b).sum() >= 0.5, (seed, k)
+            pasted += 1
+    assert pasted >= 3, pasted
 
 
 def test_full_chain_is_deterministic_and_vmaps():

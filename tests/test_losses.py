@@ -300,6 +300,14 @@ def test_invariant_to_permuting_queries_and_targets(batch):
     for grads_p in (unpermuted, grads_by_perm["m"]):
         for g_p, g in zip(jax.tree.leaves(grads_p), jax.tree.leaves(grads), strict=True):
             np.testing.assert_allclose(g_p, g, rtol=1e-4, atol=1e-7)
+    # Sampled mask points are drawn per target slot, so the queries' order changes nothing
+    # there either (a query read its own index's target mask, not its match's: not seen).
+    key = jax.random.key(5)
+    total, parts, _ = _loss(preds, targets, config=SAMPLED, key=key)
+    total_p, parts_p, _ = _loss(permuted_preds, targets, config=SAMPLED, key=key)
+    np.testing.assert_allclose(total_p, total, rtol=1e-5)
+    for name in ("dice", "focal"):
+        np.testing.assert_allclose(parts_p[name], parts[name], rtol=1e-5, atol=1e-7)
 
 
 def test_vmapped_sweep_equals_loop():
