@@ -534,11 +534,20 @@ def test_rays_from_on_or_inside_a_surface_match_mj_ray(method):
     a capsule (r 0.5, half-length 1, origin (0, 0, 0.8)) going down and out at 45 degrees
     leaves through its side at 0.707107 (mj_ray). Guards against refusing a root of 0 (the
     jax caster answered 2 going in, a miss going out) and against testing the cap sphere's
-    root against the capsule's middle plane instead of its end (0.338162)."""
+    root against the capsule's middle plane instead of its end (0.338162). Rays from a box's
+    face and a cylinder's cap hit at 0 too."""
     s = 1 / np.sqrt(2)
     for xml, origin, dirs in [
         ('<geom type="sphere" size="1"/>', [1, 0, 0], [[-1, 0, 0], [1, 0, 0]]),
         ('<geom type="capsule" size="0.5 1"/>', [0, 0, 0.8], [[s, 0, -s]]),
+        # On a box's face (the Warp box test once refused t = 0, giving the far face: 2).
+        ('<geom type="box" size="1 1 1"/>', [1, 0, 0], [[-1, 0, 0], [1, 0, 0], [-1, 0.3, 0.2]]),
+        (
+            '<geom type="box" size="0.5 0.8 0.3" pos="0.2 0 0.5"/>',
+            [0.2, 0.8, 0.5],
+            [[0, -1, 0], [0, 1, 0]],
+        ),  # fmt: skip
+        ('<geom type="cylinder" size="0.5 1"/>', [0, 0, 1], [[0, 0, -1], [0, 0, 1]]),
     ]:
         m, d, mx, dx = _scene(f"<mujoco><worldbody>{xml}</worldbody></mujoco>")
         origin, dirs = np.array(origin, np.float64), np.array(dirs, np.float32)

@@ -84,6 +84,12 @@ def test_spinning_presets():
     _, el = az_el_deg(os128.frame(0).directions)
     assert os128.num_rays == 128 * 1024 and len(np.unique(np.round(el, 3))) == 128
     assert abs(el.min() + 22.5) < 1e-3 and abs(el.max() - 22.5) < 1e-3
+    # Column c points at azimuth 360 c / columns (column-major: beams of a column together),
+    # so no column repeats the first one's azimuth at the seam.
+    az, _ = az_el_deg(f.directions)
+    want = np.repeat(np.arange(1800) * 360.0 / 1800, 16)
+    np.testing.assert_allclose(np.mod(az - want + 180.0, 360.0) - 180.0, 0.0, atol=1e-3)
+    assert len(np.unique(np.round(np.asarray(f.directions), 5), axis=0)) == 1800 * 16
     # A spinner repeats: frame k only moves its start time.
     np.testing.assert_array_equal(np.asarray(vlp.frame(0).directions), np.asarray(f.directions))
     np.testing.assert_allclose(float(f.start_time), 0.3, rtol=1e-6)
