@@ -150,8 +150,8 @@ def _check_bag_place(bag: Path, root: Path) -> None:
                 f"folder {root}; choose a bag folder outside it"
             )
     try:
-        check_partial(b)
-    except FileExistsError as e:
+        check_partial(b)  # also refuses a bag another process is writing
+    except (FileExistsError, ValueError) as e:
         raise ExportError(str(e)) from None
     existing = next(p for p in b.parents if p.exists())
     if not os.access(existing, os.W_OK | os.X_OK):

@@ -612,6 +612,14 @@ def cast_geometry(
         )
     single = origins.ndim == 1 and directions.ndim == 2
     method = _resolve_method(method)
+    mr = jnp.asarray(max_range, jnp.float32).reshape(-1)
+    if mr.shape[0] not in (1, nscene):
+        raise ValueError(
+            f"max_range: expected a scalar or one value per scene [B] = [{nscene}], got shape "
+            f"{list(jnp.shape(max_range))}"
+        )
+    if not isinstance(mr, jax.core.Tracer) and bool(jnp.isnan(mr).any()):
+        raise ValueError(f"max_range: NaN; expected metres (inf: no limit), got {max_range!r}")
     nray = directions.shape[-2]
     if nray == 0 or geo.pos.shape[1] == 0:  # nothing to cast, or nothing to hit
         dist = jnp.full((nscene, nray), -1.0, jnp.float32)
@@ -627,14 +635,6 @@ def cast_geometry(
     # A non-finite origin misses everything, as in mj_ray (the kernels gave NaN hits).
     castable &= jnp.isfinite(origin).all(-1)[:, None]
     origin = jnp.where(jnp.isfinite(origin), origin, 0.0)
-    mr = jnp.asarray(max_range, jnp.float32).reshape(-1)
-    if mr.shape[0] not in (1, nscene):
-        raise ValueError(
-            f"max_range: expected a scalar or one value per scene [B] = [{nscene}], got shape "
-            f"{list(jnp.shape(max_range))}"
-        )
-    if not isinstance(mr, jax.core.Tracer) and bool(jnp.isnan(mr).any()):
-        raise ValueError(f"max_range: NaN; expected metres (inf: no limit), got {max_range!r}")
     mr = jnp.broadcast_to(mr, (nscene,))
     castable &= ~jnp.isnan(mr)[:, None]  # traced NaN (unseen above): every ray misses
     if method == "jax":

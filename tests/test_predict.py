@@ -80,20 +80,26 @@ def test_write_bag_clears_only_its_own_leftovers(tmp_path):
 def test_a_second_write_of_one_bag_is_refused_while_the_first_runs(tmp_path):
     """Two predict runs given one --bag-out (from different --out folders) shared the bag's
     temporary folder: the second deleted the first's half-written bag, which then failed."""
-    from indoorbev_jax.rosbag import count_clouds, write_bag
+    from indoorbev_sim.export import ExportError, _check_bag_place
+
+    from indoorbev_jax.rosbag import check_partial, count_clouds, write_bag
 
     frame = (10**9, "lidar", np.zeros((3, 4), np.float32), kitti.ObjectLabels.empty())
     bag = tmp_path / "out_bag"
     names = CFG.data.class_names
 
+    said = (r"out_bag\.partial: in use by another write of this bag \(pid \d+\); wait for it "
+            "to end, or use another bag folder")  # fmt: skip
+
     def frames():
         yield frame
-        with pytest.raises(
-            ValueError,
-            match=r"out_bag\.partial: in use by another write of this bag \(pid \d+\); wait "
-            "for it to end, or use another bag folder",
-        ):
+        with pytest.raises(ValueError, match=said):
             write_bag(bag, [frame], names, "/points", "/objects")
+        # An export or predict that would write it at its end is told at its start.
+        with pytest.raises(ValueError, match=said):
+            check_partial(bag)
+        with pytest.raises(ExportError, match=said):
+            _check_bag_place(bag, tmp_path / "dataset")
         yield frame
 
     assert write_bag(bag, frames(), names, "/points", "/objects") == 2
@@ -101,6 +107,17 @@ def test_a_second_write_of_one_bag_is_refused_while_the_first_runs(tmp_path):
     # A write killed (-9) leaves its lock file: the next one is not refused.
     (tmp_path / "out_bag.partial").mkdir()
     (tmp_path / "out_bag.partial" / ".lock").write_text("write of this bag, pid 1\n")
+    assert write_bag(bag, [frame], names, "/points", "/objects") == 1
+    # Only a plain .lock file is the lock's: a symlink or a folder of that name is a user's.
+    for make in (lambda p: p.symlink_to(tmp_path / "notes.txt"), lambda p: p.mkdir()):
+        (tmp_path / "out_bag.partial").mkdir()
+        make(tmp_path / "out_bag.partial" / ".lock")
+        with pytest.raises(FileExistsError, match=r"out_bag\.partial: holds files"):
+            write_bag(bag, [frame], names, "/points", "/objects")
+        shutil.rmtree(tmp_path / "out_bag.partial")
+    # A file where the killed write's bag folder was (put there by hand) is cleared too.
+    (tmp_path / "out_bag.partial").mkdir()
+    (tmp_path / "out_bag.partial" / "out_bag").write_text("")
     assert write_bag(bag, [frame], names, "/points", "/objects") == 1
 
 

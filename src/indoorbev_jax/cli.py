@@ -260,7 +260,8 @@ def dataset_check(args: argparse.Namespace) -> int:
 
     try:
         config, source = dataset_config(args.root, args.preset, args.set)
-        report = check_dataset(args.root, args.split, config, source, progress=True)
+        progress = sys.stderr.isatty()  # no bar text in a log
+        report = check_dataset(args.root, args.split, config, source, progress=progress)
     except (kitti.DatasetError, OSError) as e:
         # stderr: `dataset check ROOT > report.txt` must still show it
         print(f"indoorbev dataset check: error: {e}", file=sys.stderr)

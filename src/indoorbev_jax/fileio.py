@@ -124,7 +124,7 @@ def hold_folder(folder: str | os.PathLike, job: str, place: str, take: bool = Tr
     folder, lock = Path(folder), None
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        lock = open(folder / ".lock", "a+")  # noqa: SIM115 (closed below, after the yield)
+        lock = _open_lock(folder)
     except OSError as e:
         # Read-only: no run can write here, so there is nothing to lock (a finished
         # predict output on read-only media is still read back and summed up).
@@ -143,6 +143,34 @@ def hold_folder(folder: str | os.PathLike, job: str, place: str, take: bool = Tr
             lock.write(f"{job}, pid {os.getpid()}\n")
             lock.flush()
         yield
+
+
+def _open_lock(folder: Path, create: bool = True):
+    """``folder/.lock`` opened for ``flock``, never through a symlink (whose target the
+    lock's line would overwrite)."""
+    flags = os.O_RDWR | os.O_APPEND | os.O_NOFOLLOW | (os.O_CREAT if create else 0)
+    try:
+        fd = os.open(folder / ".lock", flags, 0o666)
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise OSError(e.errno, f"{folder / '.lock'}: a symlink where the lock goes") from e
+        raise
+    return os.fdopen(fd, "a+")
+
+
+def check_unheld(folder: str | os.PathLike, job: str, place: str) -> None:
+    """Raises ``hold_folder``'s ValueError if a job now holds ``folder``'s lock, so that a
+    long run that takes the lock only at its end learns it at the start; no lock is kept."""
+    folder = Path(folder)
+    if not (folder / ".lock").is_file():
+        return
+    try:
+        lock = _open_lock(folder, create=False)
+    except OSError:
+        return  # unreadable or gone: the write itself will say
+    with lock:
+        if _take_lock(lock, folder, job, place):
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 def _take_lock(lock, folder: Path, job: str, place: str) -> bool:

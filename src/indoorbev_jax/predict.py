@@ -695,7 +695,7 @@ def _check_out_paths(input_path, out: Path, bag_out) -> None:
         raise ValueError(f"--out {out} is INPUT: its label_2/ and mask_2/ would be replaced")
     if bag_out is None:
         return
-    from indoorbev_jax.rosbag import check_bag_target
+    from indoorbev_jax.rosbag import check_bag_target, check_partial
 
     bag, source = Path(bag_out).resolve(), Path(input_path).resolve()
     for other, what in ((source, "INPUT"), (out.resolve(), "--out")):
@@ -704,6 +704,10 @@ def _check_out_paths(input_path, out: Path, bag_out) -> None:
     if _is_bag_folder(source) and source in bag.parents:
         raise ValueError(f"--bag-out {bag_out} lies inside the INPUT bag {source}")
     check_bag_target(bag_out, ("/points", "/detections"))
+    try:  # a bag another run is writing: said before any frame is predicted
+        check_partial(Path(bag_out))
+    except FileExistsError as e:
+        raise ValueError(str(e)) from None
 
 
 class _PredictRun:

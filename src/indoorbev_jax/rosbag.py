@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from indoorbev_jax.data import kitti
-from indoorbev_jax.fileio import hold_folder
+from indoorbev_jax.fileio import check_unheld, hold_folder
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
@@ -481,18 +481,28 @@ def partial_path(bag: Path) -> Path:
     return bag.with_name(bag.name + ".partial")
 
 
+# (job, place) of the lock a bag's write holds in its temporary folder (fileio.hold_folder).
+BAG_LOCK = ("write of this bag", "bag folder")
+
+
 def check_partial(bag: Path) -> Path:
     """``partial_path(bag)``, refused when it holds files an interrupted write of ``bag``
-    does not leave (those are deleted before the write)."""
+    does not leave (those are deleted before the write), or while another process writes
+    ``bag`` (a ValueError naming it)."""
     partial = partial_path(bag)
-    ours = {bag.name, f"{bag.name}.old", ".lock"}
+    ours = {bag.name, f"{bag.name}.old"}
+
+    def left_by_a_write(p: Path) -> bool:
+        return p.name in ours or (p.name == ".lock" and p.is_file() and not p.is_symlink())
+
     if partial.exists() and not partial.is_dir():
         raise FileExistsError(f"{partial}: a file where the bag's temporary folder goes; move it")
-    if partial.is_dir() and any(p.name not in ours for p in partial.iterdir()):
+    if partial.is_dir() and not all(left_by_a_write(p) for p in partial.iterdir()):
         raise FileExistsError(
             f"{partial}: holds files that an interrupted write of {bag} does not leave; "
             "move or delete it"
         )
+    check_unheld(partial, *BAG_LOCK)
     return partial
 
 
@@ -516,7 +526,7 @@ def write_bag(
     partial = check_partial(bag)
     # Two writes of one bag (two predict runs given one --bag-out) shared its temporary
     # folder: the second deleted the first's half-written bag. The first now holds it.
-    with hold_folder(partial, "write of this bag", "bag folder"):
+    with hold_folder(partial, *BAG_LOCK):
         return _write_bag_into(bag, partial, frames, class_names, points_topic, objects_topic)
 
 
@@ -530,7 +540,10 @@ def _write_bag_into(bag: Path, partial: Path, frames, class_names, points_topic,
     replaced = partial / f"{bag.name}.old"  # the bag this write replaces, on its way out
     tmp = partial / bag.name
     for stale in (tmp, replaced):  # left by an earlier write of this bag, cut short
-        shutil.rmtree(stale, ignore_errors=True)
+        if stale.is_symlink() or stale.is_file():
+            stale.unlink()
+        else:
+            shutil.rmtree(stale, ignore_errors=True)
     count = 0
     try:
         with Writer(tmp, version=8) as writer:

@@ -538,14 +538,21 @@ def test_hold_folder_names_the_holder_and_what_stands_in_its_way(tmp_path, monke
         with pytest.raises(OSError, match=r"cannot write in .*: .*afile is a file, not a folder"):
             with fileio.hold_folder(out, "predict run", "--out"):
                 pass
-    real_open = open
+    # A symlink where the lock goes: refused, its target left as it was (the lock's line
+    # overwrote it).
+    target = tmp_path / "notes.txt"
+    target.write_text("mine")
+    (tmp_path / "linked").mkdir()
+    (tmp_path / "linked" / ".lock").symlink_to(target)
+    with pytest.raises(OSError, match=r"linked/\.lock: a symlink where the lock goes"):
+        with fileio.hold_folder(tmp_path / "linked", "predict run", "--out"):
+            pass
+    assert target.read_text() == "mine"
 
-    def read_only(path, *args, **kwargs):
-        if str(path).endswith(".lock"):
-            raise OSError(errno.EROFS, "Read-only file system")
-        return real_open(path, *args, **kwargs)
+    def read_only(folder, *args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
 
-    monkeypatch.setattr(fileio, "open", read_only, raising=False)
+    monkeypatch.setattr(fileio, "_open_lock", read_only)
     ran = []
     with fileio.hold_folder(held, "predict run", "--out"):
         ran.append(True)

@@ -261,6 +261,8 @@ def test_filters_max_range_and_plane_conventions(method):
     np.testing.assert_array_equal(np.asarray(gid), ref_g)
     with pytest.raises(ValueError, match=r"max_range: NaN; expected metres \(inf: no limit\)"):
         lidar.cast_rays(mx, dx, jnp.asarray(origin), dirs, np.nan, method=method)
+    with pytest.raises(ValueError, match=r"max_range: NaN"):  # no ray to cast: refused too
+        lidar.cast_rays(mx, dx, jnp.asarray(origin), dirs[:0], np.nan, method=method)
     cast = jax.jit(lambda r: lidar.cast_rays(mx, dx, jnp.asarray(origin), dirs, r, method=method))
     dist, gid = cast(jnp.float32(np.nan))
     assert (np.asarray(gid) == -1).all() and (np.asarray(dist) == -1).all()
