@@ -55,6 +55,36 @@ def test_evaluate_sim_names_a_bad_frame_set():
     assert (eval_sim.TEST_SEED, eval_sim.VAL_SEED) == (sim_eval.TEST_SEED, sim_eval.VAL_SEED)
 
 
+def test_frame_tags_put_each_edge_value_in_the_row_that_names_it():
+    """Rows are named ``[a, b)``: an object with exactly a points (cells, metres) belongs to
+    the row starting at a; np.digitize(right=True) put it one row lower, unseen."""
+    import types
+
+    import numpy as np
+
+    from indoorbev_jax import sim_eval
+
+    names = {g: rows for g, rows, _ in sim_eval.BREAKDOWNS}
+    for grouping, edges in (("points", sim_eval.POINT_EDGES), ("area", sim_eval.AREA_EDGES),
+                            ("range", sim_eval.RANGE_EDGES)):  # fmt: skip
+        n = len(edges)
+        pos, masks = np.zeros((n, 3)), np.zeros((n, 8, 16), bool)
+        points = np.zeros(n, int)
+        for k, edge in enumerate(edges):
+            if grouping == "points":
+                points[k] = edge
+            elif grouping == "area":
+                masks[k].reshape(-1)[: int(edge)] = True
+            else:
+                pos[k, 0] = edge
+        targets = types.SimpleNamespace(classes=np.zeros(n, int), pos=pos, masks=masks)
+        info = types.SimpleNamespace(variant=np.zeros(n, int), num_points=points,
+                                     occlusion=np.zeros(n, int))  # fmt: skip
+        rows = sim_eval.frame_tags(targets, info)[grouping]
+        for edge, row in zip(edges, rows, strict=True):
+            assert names[grouping][row].startswith((f"[{edge:g},", f">={edge:g}")), (edge, row)
+
+
 def test_eval_sim_sweep_fuses_the_views_at_each_rows_mask_threshold():
     """With test-time views, fusion binarises the masks at ``mask_threshold``: every row of
     a mask-threshold sweep must be the evaluation at its own threshold (each row used to be

@@ -646,6 +646,12 @@ def random_targets(rng):
 @pytest.mark.parametrize("threshold", [0.25, 0.5])
 def test_tag_confusion_counts_matches_by_tag(threshold):
     gts, dets = random_frames(2)
+    gts = list(gts)
+    # An object with an empty mask leads a frame: its tag must leave with it (the tags of
+    # the others shifted onto the wrong objects when it stayed).
+    i = next(i for i, (_, gc) in enumerate(gts) if len(gc))
+    gm, gc = gts[i]
+    gts[i] = (np.concatenate([np.zeros_like(gm[:1]), gm]), np.concatenate([gc[:1], gc]))
     rng = np.random.default_rng(7)
     num_tags = 2 * NUM_CLASSES  # tag t belongs to class t // 2, as variants to their class
     ev = Evaluator()
@@ -948,13 +954,15 @@ def test_a_refused_frame_or_batch_leaves_the_evaluator_as_it_was():
     targets = random_targets(rng)
     logits = 3 * rng.standard_normal((2, B, Q, NUM_CLASSES + 1), np.float32)
     preds = predictions_from(logits, 4 * rng.standard_normal((2, B, Q, H, W), np.float32) - 1)
-    ev.add(preds, targets)
-    before = ev.compute()
     out = jax.tree.map(np.asarray, panoptic_inference(preds, ev.inference))
+    tags = np.asarray(targets.classes) % 3  # the refused batch's tags must go with it too
+    ev.add_output(out, targets, gt_tags=tags)
+    before, tagged = ev.compute(), ev.tag_confusion(3)
     bad_ids = out.instance_ids.copy()
     bad_ids[B - 1, 0, 0] = out.instance_classes.shape[1]  # an id with no class entry
     with pytest.raises(ValueError, match=rf"preds\[{2 * B - 1}\]"):
-        ev.add_output(out.replace(instance_ids=bad_ids), targets)
+        ev.add_output(out.replace(instance_ids=bad_ids), targets, gt_tags=tags)
+    np.testing.assert_array_equal(ev.tag_confusion(3), tagged)
     m = np.zeros((1, H, W), bool)
     m[0, :2, :2] = True
     ids = m[0].astype(np.int32)
@@ -970,6 +978,30 @@ def test_a_refused_frame_or_batch_leaves_the_evaluator_as_it_was():
     with pytest.raises(ValueError, match=rf"dets\[{B}\]: expected masks \[D, H, W\]"):
         ev.add_frame(**dict(frame, det=(m, np.array([0]), np.array([0.9, 0.8]))))
     np.testing.assert_equal(ev.compute(), before)
+    np.testing.assert_array_equal(ev.tag_confusion(3), tagged)
+
+
+def test_table_rows_and_mean_row_are_the_computed_values():
+    """Every cell of the printed table is its ``compute()`` value in %: the mean row's
+    semIoU column showing mIoU instead passed every test."""
+    from indoorbev_jax.metrics import format_percent
+
+    rng = np.random.default_rng(9)
+    ev = Evaluator(InferenceConfig(score_threshold=0.3))
+    targets = random_targets(rng)
+    logits = 3 * rng.standard_normal((2, B, Q, NUM_CLASSES + 1), np.float32)
+    ev.add(predictions_from(logits, 4 * rng.standard_normal((2, B, Q, H, W), np.float32) - 1),
+           targets)  # fmt: skip
+    r = ev.compute()
+    assert r["miou"] != r["semantic_miou"]  # the columns can be told apart
+    lines = ev.table(r).splitlines()
+    keys = ["ap@0.25", "ap@0.5", "pq", "sq", "rq", "miou", "semantic_iou"]
+    means = [r["ap"][0.25], r["ap"][0.5], r["pq"], r["sq"], r["rq"], r["miou"], r["semantic_miou"]]
+    rows = {line.split()[0]: line.split()[1:] for line in lines[1:-1]}
+    total = sum(row["num_gt"] for row in r["per_class"].values())
+    assert rows["mean"] == [str(total), *map(format_percent, means)]
+    for name, row in r["per_class"].items():
+        assert rows[name] == [str(row["num_gt"]), *(format_percent(row[k]) for k in keys)]
 
 
 def test_metrics_keeps_the_names_of_the_one_module_it_was():

@@ -96,6 +96,12 @@ def test_non_finite_step_is_skipped(batch, step_fn):
     assert not bool(metrics["finite"])
     assert int(bad.skipped) == 1 and int(bad.step) == 2
     jax.tree.map(np.testing.assert_array_equal, bad.params, good.params)
+    # The optimizer's state is kept too: NaN moments passed the next step's finite check
+    # (which reads the loss and gradients) and turned every parameter NaN for good.
+    jax.tree.map(np.testing.assert_array_equal, bad.opt_state, good.opt_state)
+    after, metrics = step_fn(bad, batch, jax.random.key(2), hyper)
+    assert bool(metrics["finite"])
+    assert all(np.isfinite(p).all() for p in jax.tree.leaves(after.params))
 
 
 def test_vmapped_sweep_equals_separate_runs(batch, step_fn):

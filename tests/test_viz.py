@@ -84,6 +84,12 @@ def test_height_ramp_runs_blue_green_red():
     lo, hi = GRID.z_range
     low, mid, high = viz.height_colour(np.array([lo, (lo + hi) / 2, hi]), GRID.z_range)
     assert low.argmax() == 2 and mid.argmax() == 1 and high.argmax() == 0, (low, mid, high)
+    # Linear in each half and continuous at the middle (a half-slope first half jumped
+    # there and passed): each quarter point is the blend of its half's ends.
+    z = lo + (hi - lo) * np.array([0.0, 0.25, 0.5 - 1e-6, 0.5, 0.75, 1.0])
+    c = viz.height_colour(z, GRID.z_range).astype(int)
+    assert np.abs(c[1] - (c[0] + c[3]) / 2).max() <= 1 and np.abs(c[2] - c[3]).max() <= 1
+    assert np.abs(c[4] - (c[3] + c[5]) / 2).max() <= 1, c
 
 
 def test_higher_points_are_drawn_on_top():

@@ -100,6 +100,16 @@ def test_pcd_intensity_field_named_i(tmp_path):
     for data in ("binary", "ascii"):
         _write_pcd(tmp_path / f"i_{data}.pcd", POINTS, data, layout=layout, s=s)
         np.testing.assert_array_equal(clouds.read_pcd(tmp_path / f"i_{data}.pcd"), POINTS)
+    # An Ouster-style cloud carries both intensity and reflectivity (listed first here):
+    # intensity is read, as from a PointCloud2 (test_pointcloud2_intensity_field_wins...).
+    both = [*layout[:3], ("reflectivity", "<u2", 2, "U", 1), ("intensity", "<f4", 4, "F", 1)]
+    s = np.zeros(len(POINTS), [(n, t) for n, t, *_ in both])
+    for k, name in enumerate("xyz"):
+        s[name] = POINTS[:, k]
+    s["reflectivity"], s["intensity"] = 77, POINTS[:, 3]
+    for data in ("binary", "ascii"):
+        _write_pcd(tmp_path / f"both_{data}.pcd", POINTS, data, layout=both, s=s)
+        np.testing.assert_array_equal(clouds.read_pcd(tmp_path / f"both_{data}.pcd"), POINTS)
 
 
 def test_bad_pcd_files_are_named(tmp_path):

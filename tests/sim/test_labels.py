@@ -175,6 +175,9 @@ def test_padding_instance_ids_and_filters(frames):
         for b in range(B):
             counts = np.bincount(info.point_object[b][info.point_object[b] >= 0], minlength=m)
             np.testing.assert_array_equal(counts[t.valid[b]], info.num_points[b][t.valid[b]])
+            # Returns of unlabelled objects (too few points, centre off the grid) name no
+            # target: they were given a padding target's index.
+            assert (counts[~t.valid[b]] == 0).all()
 
 
 def test_a_cut_cloud_counts_the_points_it_delivers():

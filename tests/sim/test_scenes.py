@@ -491,6 +491,12 @@ def test_bank_objects_follow_the_documented_sizes_and_facing():
     cab = objects.CLASS_INDEX["Cabinet"]  # prims: body 0, handle 1, all 3 variants
     assert (bank.pos[cab, :3, :, 1, 1] > 0).all()
     assert (bank.pos[cab, :3, :, 1, 1] > bank.pos[cab, :3, :, 0, 1]).all()  # before the body
+    # The bookshelf's back panel (prim 2 of variant 0; the low shelf has none) on -y too:
+    # on +y, a wall-bound bookshelf stood open side to the wall (passed before).
+    shelf = objects.CLASS_INDEX["Shelf"]
+    bookshelf = objects.CLASSES[shelf].variants.index("bookshelf")
+    assert objects.CLASSES[shelf].prims[2] == "box"
+    assert (bank.pos[shelf, bookshelf, :, 2, 1] < 0).all()
 
 
 def test_door_widths_are_in_the_documented_range():
