@@ -98,6 +98,8 @@ def test_the_paper_preset_holds_designs_numbers():
         (lambda: AugmentConfig(jitter_std=math.inf), "augment.jitter_std"),
         (lambda: AugmentConfig(scale_range=(1.0, math.inf)), "augment.scale_range"),
         (lambda: SimConfig(min_range=math.nan), "sim.min_range"),
+        # A workspace of no height: no point inside, and a height ramp dividing by zero.
+        (lambda: GridConfig(z_range=(1.0, 1.0)), "grid.z_range"),
         # int(width x ratio) hidden units: 0 or inf failed in the model's init, a traceback.
         (lambda: BackboneConfig(mlp_ratio=0.01), "backbone.mlp_ratio"),
         (lambda: BackboneConfig(mlp_ratio=math.inf), "backbone.mlp_ratio"),

@@ -606,6 +606,8 @@ def test_node_settings_fail_before_the_node_starts(monkeypatch, capsys):
         ({"objects_topic": "/2d"}, "objects_topic: '/2d' is not a valid"),
         ({"wait_subscribers": -2}, "wait_subscribers: expected a whole number >= 0"),
         ({"wait_timeout": float("inf")}, "wait_timeout: expected seconds > 0"),
+        ({"wait_timeout": 0.0}, "wait_timeout: expected seconds > 0"),
+        ({"rate": 0.0}, "rate: expected frames per second > 0"),  # a ZeroDivisionError
     ]:
         with pytest.raises(ValueError, match=match):
             publish(CFG, **bad)

@@ -652,6 +652,15 @@ def test_a_resumed_train_line_says_how_many_steps_it_averages(data, tmp_path, mo
     assert train_lines(tmp_path / "cut") == [(4, 1, 4.0), (8, 4, 6.5)]
 
 
+def test_an_interrupted_save_is_no_checkpoint(tmp_path):
+    """orbax writes a step under ``<step>.orbax-checkpoint-tmp`` first: a run killed there
+    has trained nothing that a changed config would contradict."""
+    (tmp_path / "checkpoints" / "100.orbax-checkpoint-tmp").mkdir(parents=True)
+    assert not rundir._has_checkpoint(tmp_path)
+    (tmp_path / "checkpoints" / "100").mkdir()
+    assert rundir._has_checkpoint(tmp_path)
+
+
 def test_metrics_log_drops_a_torn_last_line_only(tmp_path, caplog):
     path = tmp_path / "metrics.jsonl"
     good = ['{"step": 5, "kind": "train", "loss": 2.0}', '{"step": 10, "kind": "train"}']
@@ -666,6 +675,19 @@ def test_metrics_log_drops_a_torn_last_line_only(tmp_path, caplog):
     log.write(15, "train", {"loss": 1.0})
     log.close()
     assert [json.loads(line)["step"] for line in path.read_text().splitlines()] == [5, 10, 15]
+    # TensorBoard drops events from the resumed run's first new step on: step 10's records
+    # were written before its checkpoint, and purging from 10 lost them there.
+    from tensorboardX.proto import event_pb2
+
+    newest = max((tmp_path / "tb").glob("events.*"), key=lambda f: f.stat().st_mtime_ns)
+    data, starts = newest.read_bytes(), []
+    while data:  # TFRecords: length (8), its crc (4), the event, its crc (4)
+        n = int.from_bytes(data[:8], "little")
+        event = event_pb2.Event.FromString(data[12 : 12 + n])
+        if event.HasField("session_log") and event.session_log.status == 1:  # START
+            starts.append(event.step)
+        data = data[16 + n :]
+    assert starts == [11]
     # A bad line with lines after it is corruption, not a torn write.
     path.write_text(good[0] + '\n{"step": 7, "ki\n' + good[1] + "\n")
     with pytest.raises(ValueError, match=f"{re.escape(str(path))}: line 2 is not a JSON object"):
@@ -854,7 +876,9 @@ def test_box_targets_are_the_rasterised_labelled_boxes(batch):
 
 
 def test_gt_database_holds_every_valid_object_of_its_batches(batch):
-    db = sources.gt_database(lambda i: batch, 2, CFG.grid)
+    steps = []
+    db = sources.gt_database(lambda i: steps.append(i) or batch, 2, CFG.grid)
+    assert steps == [0, 1]  # "the first N training batches"
     n = int(np.asarray(batch.targets.valid).sum())
     assert db.classes.shape == (2 * n,)
     want = np.asarray(batch.targets.classes)[np.asarray(batch.targets.valid)]

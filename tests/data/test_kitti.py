@@ -511,6 +511,27 @@ def test_a_mid360_scan_with_three_or_five_columns_is_refused(tmp_path, half, cei
             kitti.read_points(tmp_path / f"{name}.bin")
 
 
+def test_stale_temporaries_go_by_their_age_and_the_jobs(tmp_path):
+    """A killed write's temporary older than ``min_age`` goes; one younger (another
+    process's write in flight) stays, at the start of a job (60 s) and at its end, when
+    ``age_since`` gives the job's age with a 1 s floor. Both passed with the age ignored."""
+    import time
+
+    now = time.time()
+    assert fileio.age_since(now - 30) == pytest.approx(30, abs=1)
+    assert fileio.age_since(now) == 1.0
+    ages = {".a.txt.abcd1234.tmp": 0.5, ".b.txt.efgh5678.tmp": 10, ".c.txt.ijkl9012.tmp": 45,
+            ".d.txt.mnop3456.tmp": 120}  # fmt: skip
+    for name, age in ages.items():
+        (tmp_path / name).write_bytes(b"x")
+        os.utime(tmp_path / name, (now - age, now - age))
+    fileio.remove_stale_temporaries(tmp_path, "*", 60.0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(ages)[:3]
+    # At the end of a 30 s job: what is older than the job goes, what is younger stays.
+    fileio.remove_stale_temporaries(tmp_path, "*", fileio.age_since(now - 30))
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(ages)[:2]
+
+
 def test_hold_folder_names_the_holder_and_what_stands_in_its_way(tmp_path, monkeypatch):
     """The lock names the job holding it (a predict into an export's folder was told "in
     use by another predict run"), an --out under a file says so (a bare "File exists"
