@@ -8,7 +8,6 @@ import math
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import textwrap
@@ -350,9 +349,12 @@ def test_kill_and_rerun_resumes_bitwise(data, tmp_path):
         _train_cmd(data, killed, pretrained), env=env, stderr=subprocess.DEVNULL
     )
     deadline = time.time() + 600
+    # Until checkpoint 2 appears, or the run ends without it (a failure, told at once).
     while time.time() < deadline and not (killed / "checkpoints" / "2").is_dir():
+        if proc.poll() is not None:
+            break
         time.sleep(0.2)
-    os.kill(proc.pid, signal.SIGKILL)
+    proc.kill()  # SIGKILL; nothing when the run has ended
     proc.wait()
     assert (killed / "checkpoints" / "2").is_dir()
     subprocess.run(_train_cmd(data, killed, pretrained), check=True, env=env, timeout=900)
