@@ -225,7 +225,7 @@ def check_sensor_height(sim: SimConfig) -> None:
         low = [k.name for k in kinds if k.ceiling[0] == lowest]
         raise ValueError(
             f"sim.sensor_height: up to {sim.sensor_height[1]} m reaches the ceiling: the lowest "
-            f"ceilings ({', '.join(low)} rooms) are {lowest} m, so the lidar must stay below "
+            f"ceilings ({', '.join(low)} rooms) are {lowest} m, so the lidar must stay at or below "
             f"{lowest - CEILING_CLEARANCE:.2f} m ({CEILING_CLEARANCE} m under the ceiling "
             f"slab); or leave {', '.join(low)} out of sim.layouts"
         )

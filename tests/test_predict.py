@@ -18,7 +18,7 @@ import pytest
 
 from indoorbev_jax import predict as P
 from indoorbev_jax.cli import main as cli_main
-from indoorbev_jax.config import Config, InferenceConfig
+from indoorbev_jax.config import LATER_FIELDS, Config, InferenceConfig
 from indoorbev_jax.data import kitti
 from indoorbev_jax.rosbag import LIVOX_CUSTOM, BagError, pointcloud2_to_points, typestore
 from indoorbev_jax.train import init_state
@@ -1024,6 +1024,15 @@ def test_model_fingerprint_is_the_one_older_versions_gave():
     assert P.model_fingerprint(tiny, params) == old
     tilted = dataclasses.replace(tiny, sim=dataclasses.replace(tiny.sim, sensor_rpy=(0, 5, 0)))
     assert P.model_fingerprint(tilted, params) != old
+    # Each later field leaves the record at its default and only then (a mutation audit
+    # found sensor_tilt_jitter checked by the hash above alone).
+    for path, default in LATER_FIELDS.items():
+        section, name = path.split(".")
+        assert name not in tiny.stable_dict()[section] and name in tiny.to_dict()[section]
+        assert getattr(getattr(tiny, section), name) == default
+    jittered = dataclasses.replace(tiny, sim=dataclasses.replace(tiny.sim, sensor_tilt_jitter=3.0))
+    assert jittered.stable_dict()["sim"]["sensor_tilt_jitter"] == 3.0
+    assert P.model_fingerprint(jittered, params) != old
 
 
 def test_a_resumed_run_reads_its_finished_frames_as_the_first_run_did(

@@ -396,6 +396,11 @@ def test_a_lidar_within_its_clearance_of_the_ceiling_is_refused():
         scenes.check_sensor_height(dataclasses.replace(CFG.sim, sensor_height=(near, near)))
     ok = round(lowest - 1.5 * m, 6)
     scenes.check_sensor_height(dataclasses.replace(CFG.sim, sensor_height=(ok, ok)))
+    # Exactly the clearance under the ceiling is allowed, as the message says ("at or below").
+    edge = lowest - m
+    scenes.check_sensor_height(dataclasses.replace(CFG.sim, sensor_height=(edge, edge)))
+    with pytest.raises(ValueError, match=f"must stay at or below {edge:.2f} m"):
+        scenes.check_sensor_height(dataclasses.replace(CFG.sim, sensor_height=(near, near)))
     blind = dataclasses.replace(CFG.sim, sensor_height=(1.6, 1.9), min_range=0.8)
     scenes.check_sensor_height(blind)
 
