@@ -100,6 +100,8 @@ def test_a_second_write_of_one_bag_is_refused_while_the_first_runs(tmp_path):
             check_partial(bag)
         with pytest.raises(ExportError, match=said):
             _check_bag_place(bag, tmp_path / "dataset")
+        with pytest.raises(ValueError, match=said):  # predict's checks before its first frame
+            P._check_out_paths(tmp_path / "clouds", tmp_path / "out", bag)
         yield frame
 
     assert write_bag(bag, frames(), names, "/points", "/objects") == 2
