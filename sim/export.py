@@ -103,10 +103,14 @@ def _meta_diff(old: dict, new: dict, limit: int = 10) -> str:
     name first, at most ``limit`` fields. Compared as JSON rather than through
     ``config_diff``, so that a field only one side has (another version) shows too."""
     a, b = flatten_dict(old), flatten_dict(new)
-    absent = "(absent)"
+    absent = object()
     keys = [k for k in a.keys() | b.keys() if a.get(k, absent) != b.get(k, absent)]
     keys.sort(key=lambda k: (k.startswith("config.") and k != "config.name", k))
-    rows = [f"{k}: {a.get(k, absent)!r} (saved) vs {b.get(k, absent)!r} (given)" for k in keys]
+
+    def shown(d, k):
+        return repr(d[k]) if k in d else "(absent)"
+
+    rows = [f"{k}: {shown(a, k)} (saved) vs {shown(b, k)} (given)" for k in keys]
     more = [f"and {len(rows) - limit} more fields"] if len(rows) > limit else []
     return "; ".join(rows[:limit] + more)
 

@@ -167,3 +167,29 @@ def test_a_wide_grid_draws_a_point_near_its_right_edge_at_its_place():
     s = viz.picture_scale(grid)
     assert img.shape[1] == w * s and w * s >= 600
     assert cols.min() == int((x - grid.x_range[0]) / grid.cell_size * s), cols
+
+
+def test_each_box_is_named_by_its_own_class_and_score(monkeypatch):
+    """The text by a box is its class name and score. A mutation audit: names taken by the
+    box's line number (a Person labelled Table) passed."""
+    from PIL import ImageDraw
+
+    said = []
+    draw_text = ImageDraw.ImageDraw.text
+
+    def text(self, xy, words, *args, **kwargs):
+        said.append(words)
+        return draw_text(self, xy, words, *args, **kwargs)
+
+    monkeypatch.setattr(ImageDraw.ImageDraw, "text", text)
+    person = CLASS_NAMES.index("Person")
+    labels = kitti.ObjectLabels(
+        classes=np.array([person, 0]),
+        dims=np.array([[0.5, 0.5, 1.7], [1.2, 0.8, 0.75]]),
+        pos=np.array([[1.0, 1.0, 0.85], [-2.0, 0.0, 0.375]]),
+        yaw=np.zeros(2),
+        occlusion=np.zeros(2, int),
+        scores=np.array([0.9, 0.7]),
+    )
+    viz.render_bev(np.zeros((0, 4)), labels, None, GRID, CLASS_NAMES)
+    assert said == ["Person 0.90", f"{CLASS_NAMES[0]} 0.70"]

@@ -54,7 +54,8 @@ def exported(tmp_path_factory, cache):
 def test_kitti_round_trip_is_exact(exported):
     root, _, splits = exported
     fn = export_mod.scene_fn(CFG)
-    for j in (0, 9):  # a train scene and a test scene, regenerated
+    # A train, a val and a test scene, regenerated: val draws from the training plans.
+    for j in (0, 8, 9):
         batch, info = fn(jax.random.fold_in(jax.random.key(SEED), j), j == 9)
         for t in range(CFG.sim.frames_per_sequence):
             fid = export_mod.frame_id(2 * j + t)
@@ -76,6 +77,22 @@ def test_kitti_round_trip_is_exact(exported):
     for split, ids in splits.items():
         assert kitti.read_split(root, split) == ids
     assert sorted(sum(splits.values(), [])) == kitti.list_frames(root)
+
+
+def test_publish_streams_every_frame_of_each_scene_in_turn(cache):
+    """``indoorbev-sim ros2 publish`` streams scene after scene, each scene's T consecutive
+    frames: stream frame T*j + t is frame t of scene j, the draw an export makes. A mutation
+    audit: a stream of each scene's first frame only passed."""
+    from indoorbev_sim.ros2 import scene_frames
+
+    fn, stream = export_mod.scene_fn(CFG), scene_frames(CFG, SEED, "test")
+    for j in range(2):
+        batch, info = fn(jax.random.fold_in(jax.random.key(SEED), j), True)
+        for t in range(CFG.sim.frames_per_sequence):
+            points, labels = next(stream)
+            want_points, want_labels = export_mod.scene_frame(batch, info, t)
+            np.testing.assert_array_equal(points, want_points.astype(np.float32))
+            np.testing.assert_array_equal(labels.pos, want_labels.pos)
 
 
 def test_test_split_comes_from_held_out_plans(exported):
@@ -441,6 +458,23 @@ def test_settings_mismatch_names_each_field(exported, tmp_path):
     assert "frames" not in msg.split("other settings:")[1]  # only the fields that differ
 
 
+def test_a_long_settings_mismatch_names_seed_frames_and_preset_before_the_config():
+    """With more differing fields than the message lists, seed, frames and the preset name
+    still come first (the docstring). A mutation audit: a plain sort, which dropped the seed
+    behind twelve config fields, passed."""
+    sim = {f"f{i:02d}": i for i in range(12)}
+    old = {"seed": 0, "frames": 20, "config": {"name": "tiny", "sim": sim}}
+    new = {"seed": 1, "frames": 40, "config": {"name": "small", "sim": {}}}
+    rows = export_mod._meta_diff(old, new).split("; ")
+    assert rows[:4] == [
+        "config.name: 'tiny' (saved) vs 'small' (given)",
+        "frames: 20 (saved) vs 40 (given)",
+        "seed: 0 (saved) vs 1 (given)",
+        "config.sim.f00: 0 (saved) vs (absent) (given)",
+    ]
+    assert len(rows) == 11 and rows[-1] == "and 5 more fields"
+
+
 def test_an_export_json_from_before_a_later_field_still_matches(exported, tmp_path):
     """``sim.sensor_rpy`` came later: a level export leaves it out of export.json, so the
     folders exported before it resume; a tilted one records it, and a level rerun differs."""
@@ -505,6 +539,23 @@ def test_cli_takes_the_preset_of_export_json(exported, tmp_path, capsys):
     ref = show.show(root, tmp_path / "ref", CFG, ids)
     for path in ref:
         assert (tmp_path / "cli" / path.name).read_bytes() == path.read_bytes()
+
+
+def test_an_export_short_of_a_split_says_how_many_frames_give_every_split(cache, tmp_path, capsys):
+    """The note's --frames N is the fewest whole scenes that hold all three splits. A
+    mutation audit: the note saying 9 scenes' frames (no test scene among them) passed."""
+    import math
+    import re
+
+    args = ["--frames", "2", "--seed", str(SEED), "--preset", "tiny", "--no-progress"]
+    assert main(["export", "--out", str(tmp_path / "ds"), *args, "--cache", ""]) == 0
+    out = capsys.readouterr()
+    assert out.out.split() == ["train=2", "val=0", "test=0"]
+    n = int(re.search(r"--frames >= (\d+) gives every split", out.err).group(1))
+    per_scene = CFG.sim.frames_per_sequence
+    splits = {export_mod.scene_split(j) for j in range(math.ceil(n / per_scene))}
+    fewer = {export_mod.scene_split(j) for j in range(math.ceil(n / per_scene) - 1)}
+    assert splits == {"train", "val", "test"} and fewer != splits
 
 
 def test_show_refuses_a_missing_folder(tmp_path, capsys):

@@ -561,6 +561,34 @@ def test_rays_from_on_or_inside_a_surface_match_mj_ray(method):
 
 
 @pytest.mark.parametrize("method", ["binned", "brute", "jax"])
+def test_rays_along_a_box_axis_hit_or_pass_it_as_mj_ray(method):
+    """Rays along a box's axes (two direction components exactly 0) from beside, within
+    and beyond each pair of faces they run parallel to hit or pass it as in mj_ray. A
+    mutation audit: the jax caster's "parallel to a slab and outside it" test at twice the
+    half-size passed (random rays never have a zero component)."""
+    xml = '<mujoco><worldbody><geom type="box" size="0.5 0.4 0.1" pos="0.2 -0.1 0.45"/>'
+    m, d, mx, dx = _scene(xml + "</worldbody></mujoco>")
+    centre, half = d.geom_xpos[0], m.geom_size[0]
+    for axis in range(3):
+        across = [(axis + 1) % 3, (axis + 2) % 3]
+        for sign in (1.0, -1.0):
+            v = np.zeros((1, 3), np.float32)
+            v[0, axis] = sign
+            # In units of the half-sizes across the ray: in the box's shadow when both < 1.
+            for a, b in ((-1.5, 0.8), (0.8, -1.5), (0.8, 0.8), (1.5, 1.5)):
+                offset = np.zeros(3)
+                offset[axis] = -4 * sign * half[axis]
+                offset[across] = np.array([a, b]) * half[across]
+                origin = centre + offset
+                ref_d, ref_g = mj_ray_reference(m, d, origin, v)
+                assert (ref_g[0] == 0) == (max(abs(a), abs(b)) < 1)
+                dist, gid = _cast[method](mx, dx, jnp.asarray(origin, jnp.float32), jnp.asarray(v))
+                where = f"axis {axis} sign {sign} offsets {a, b}"
+                np.testing.assert_array_equal(np.asarray(gid), ref_g, err_msg=where)
+                np.testing.assert_allclose(np.asarray(dist), ref_d, atol=1e-5, err_msg=where)
+
+
+@pytest.mark.parametrize("method", ["binned", "brute", "jax"])
 def test_max_range_is_in_metres_for_a_non_unit_direction(method):
     """Distances are in units of |direction| (as mj_ray's), max_range in metres: with
     direction (2, 0, 0) a sphere whose surface is 8 m away is hit at 4.0 (mj_ray) within
