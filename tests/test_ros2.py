@@ -102,6 +102,13 @@ def test_detection_messages_round_trip():
     assert (strip.points[0].x, strip.points[0].y) == (strip.points[4].x, strip.points[4].y)
     assert strip.points[0].z == pytest.approx(0.0)  # the floor under the box
     assert markers[2].text == "Chair 0.50" and markers[4].text == "Person 0.25"
+    # RViz keys markers by (ns, id): id = object index (else each replaces the last); each
+    # label floats 0.2 m over its box's top. A mutation audit: ids all 0 passed.
+    assert [(m.ns, m.id) for m in markers[1:]] == [
+        ("footprints", 0), ("labels", 0), ("footprints", 1), ("labels", 1)
+    ]  # fmt: skip
+    tops = labels.pos[:, 2] + labels.dims[:, 2] / 2 + 0.2
+    np.testing.assert_allclose([markers[2].pose.position.z, markers[4].pose.position.z], tops)
 
 
 def test_detections_read_with_their_declared_fields():
@@ -540,6 +547,8 @@ def test_speed_hint_only_when_views_outpace_the_sensor(detector):
     assert detector.inference_ms() > 0  # the model ran on the dummy cloud
     assert speed_hint(250.0, ("identity",)) is None  # one view: nothing to trade
     assert speed_hint(90.0, ("identity", "mirror_y")) is None  # within 100 ms at 10 Hz
+    assert speed_hint(100.0, ("identity", "mirror_y")) is None  # exactly keeps up
+    assert speed_hint(100.5, ("identity", "mirror_y")).startswith("inference takes 100 ms")
     hint = speed_hint(216.6, tuple(VIEWS))
     assert hint.startswith("inference takes 217 ms per cloud with 8 test-time views")
     assert "--views identity" in hint
@@ -600,6 +609,10 @@ def test_node_settings_fail_before_the_node_starts(monkeypatch, capsys):
             detect.run_detect_node("no-such-model", **bad)
     with pytest.raises(RosUnavailable):  # good settings get as far as rclpy
         detect.run_detect_node("no-such-model", topic="~/points", out_ns="bev")
+    # A trailing slash is no second one (a mutation audit: "/indoorbev/" refused passed).
+    for ns, root in (("/indoorbev/", "/indoorbev"), ("/", ""), ("bev", "bev")):
+        topics = detect.check_settings("/livox/lidar", ns, 5.0, 0)
+        assert topics == {k: f"{root}/{k}" for k in OUTPUTS}
     for bad, match in [
         ({"frames": -1}, "frames: expected a whole number >= 0"),
         ({"topic": "points/"}, "topic: 'points/' is not a valid"),
@@ -1002,7 +1015,7 @@ def test_sim_publish_goes_on_and_reports_when_its_recording_fails(tmp_path, monk
     assert (tmp_path / "bag.partial").is_dir() and not (tmp_path / "bag").exists()
 
 
-def test_header_nanosec_of_a_second_or_more_is_refused():
+def test_header_from_cdr_reads_either_byte_order_and_refuses_nanosec_of_a_second():
     """builtin_interfaces/Time keeps ``nanosec < 10**9``: ``header_from_cdr`` reads a broken
     cloud's header only when it is a valid one, else None (its docstring), so a header of
     nanosec 10**9 gives no outputs rather than a stamp one second off. A mutation audit:
@@ -1011,6 +1024,13 @@ def test_header_nanosec_of_a_second_or_more_is_refused():
     for nanosec, want in ((10**9 - 1, (5 * 10**9 + 10**9 - 1, "lidar")), (10**9, None)):
         raw = b"\x00\x01\x00\x00" + struct.pack("<iII", 5, nanosec, len(frame)) + frame
         assert M.header_from_cdr(raw + b"\x00\x00") == want
+    # Big-endian CDR (encapsulation 0x0000) is read in its own byte order. A mutation audit:
+    # reading every header little-endian (a big-endian cloud lost its stamp) passed.
+    msg = cloud_msg(TS, np.zeros((3, 4), np.float32), 5 * 10**9 + 7, "test_lidar")
+    for little_endian in (True, False):
+        raw = bytes(TS.serialize_cdr(msg, POINTCLOUD2, little_endian=little_endian))
+        assert raw[1] == little_endian
+        assert M.header_from_cdr(raw) == (5 * 10**9 + 7, "test_lidar")
 
 
 def test_occupancy_map_load_time_is_the_cloud_stamp():
@@ -1056,8 +1076,8 @@ def test_node_drops_stale_clouds_and_times_only_stamped_ones(monkeypatch):
     - unstamped clouds (stamp 0) stay out of every latency (else ~1.8e12 ms).
 
     A mutation audit: keeping stale clouds in the mailbox, a subscription depth of 10,
-    latency ending before the detections are published, and unstamped clouds in the
-    latency statistics all passed."""
+    latency ending before the detections are published, unstamped clouds in the latency
+    statistics, transport timed to the publish and bad inputs not counted all passed."""
     from indoorbev_jax.ros2 import detect, runtime
 
     entered, gate, processed, published = threading.Event(), threading.Event(), [], []
@@ -1081,7 +1101,8 @@ def test_node_drops_stale_clouds_and_times_only_stamped_ones(monkeypatch):
             assert gate.wait(10)
             outputs = {k: k.encode() for k in OUTPUTS}
             empty = kitti.ObjectLabels.empty(with_scores=True)
-            return detect.Result(stamp, frame, outputs, empty, None, 5.0)
+            infer_ms = 0.0 if frame == "c0" else 5.0  # c0 a bad input: the model not run
+            return detect.Result(stamp, frame, outputs, empty, None, infer_ms)
 
     class Pub:
         def __init__(self, topic):
@@ -1138,9 +1159,11 @@ def test_node_drops_stale_clouds_and_times_only_stamped_ones(monkeypatch):
     assert set(qos_of.values()) == {(True, 5)}
     assert processed == ["c0", "c19", "c20"]
     assert (summary["received"], summary["processed"], summary["dropped_stale"]) == (21, 3, 18)
+    assert summary["bad_input"] == 1
     # Two stamped clouds timed: c19 waits out c0's detections publish and its own (at
-    # least 0.2 s), c20 its own (at least 0.1 s); the callback took each at once.
-    assert summary["transport_ms"]["max"] < 5_000  # unstamped c0 left out (it read 1.8e12)
+    # least 0.2 s), c20 its own (at least 0.1 s); the callback took each at once, and
+    # transport ends there (unstamped c0 left out: it read 1.8e12).
+    assert summary["transport_ms"]["max"] < 1.5 * slow_ms
     assert summary["latency_ms"]["mean"] >= 1.5 * slow_ms
     assert summary["latency_ms"]["max"] < 10_000
 
@@ -1190,3 +1213,12 @@ def test_sim_publish_markers_live_two_frame_periods(monkeypatch):
     assert len(arrays) == 2 and all(len(a.markers) == 1 + len(labels) for a in arrays)
     lifetime = divmod(round(2 / rate * 1e9), 10**9)
     assert {(m.lifetime.sec, m.lifetime.nanosec) for a in arrays for m in a.markers} == {lifetime}
+    # rate_hz is frames per second between the first and the last publish: 3 frames 0.05 s
+    # apart on a clock that moves only while publish waits. A mutation audit: frames over
+    # that time (30 Hz here) passed.
+    now = [1000.0]
+    clock = types.SimpleNamespace(
+        monotonic=lambda: now[0], sleep=lambda s: now.__setitem__(0, now[0] + s)
+    )
+    monkeypatch.setattr(sim_ros2, "time", clock)
+    assert sim_ros2.publish(CFG, rate=rate, frames=3) == {"frames": 3, "rate_hz": 20.0, "late": 0}

@@ -198,6 +198,16 @@ def test_bfloat16_model_computes_its_output_heads_in_float32(params):
     ref = np.asarray(FORWARD(shifted, pts, valid).pos)
     # The same model: the bfloat16 trunk alone moves these untrained outputs by up to 0.1 m.
     np.testing.assert_allclose(np.asarray(out.pos), ref, atol=0.2)
+    # The flag alone (no dtype given, as train and predict build the model) makes the trunk
+    # bfloat16. A mutation audit: the model ignoring it (all float32) passed.
+    _, inter = jax.eval_shape(
+        lambda p: IndoorBEV(bf16).apply(
+            p, pts, valid, capture_intermediates=True, mutable=["intermediates"]
+        ),
+        shifted,
+    )
+    stages = inter["intermediates"]["backbone"]["__call__"][0]
+    assert {v.dtype for v in stages.values()} == {jnp.dtype(jnp.bfloat16)}
 
 
 # numpy re-derivations written from DESIGN section 7 / DETR, not from head.py

@@ -3,6 +3,8 @@ selection (``HeadConfig.mask_prior`` / ``query_init="select"``), and the seed lo
 trains the selection head."""
 
 import dataclasses
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +17,9 @@ from indoorbev_jax.config import Config, ConfigError, HeadConfig, LossConfig
 from indoorbev_jax.geometry import cell_centers
 from indoorbev_jax.models.head import SimpleMaskHead, peak_cells
 from indoorbev_jax.types import Targets
+
+sys.path.insert(0, str(Path(__file__).parents[1]))
+from numpy_layers import dense  # noqa: E402
 
 CFG = Config.tiny()
 H, W = CFG.grid.shape
@@ -87,6 +92,9 @@ def test_peak_cells_rank_every_peak_first_on_logits():
 
 
 def test_select_queries_start_at_their_cells_and_sow_the_seeds(feats):
+    """Each query starts at its selected cell: its anchor the cell's centre, its content
+    Dense(F_proj at the cell). A mutation audit: the features gathered from the transposed
+    map and the seed prior's sign flipped (probability 0.99) passed."""
     head = _head(query_init="select")
     params = head.init(jax.random.key(3), feats)
     assert "query_embed" not in params["params"] and "seed_head" in params["params"]
@@ -104,6 +112,40 @@ def test_select_queries_start_at_their_cells_and_sow_the_seeds(feats):
         np.broadcast_to(anchor, offset.shape),
         atol=1e-5,
     )
+    # The query's content is F_proj at its selected cell (row-major: cell = row * W + col).
+    f_proj = np.asarray(inter["intermediates"]["input_proj_norm"]["__call__"][0])
+    content = np.asarray(inter["intermediates"]["query_content"]["__call__"][-1])  # [B, Q, C]
+    at_cells = np.take_along_axis(f_proj.reshape(2, H * W, -1), cells[..., None], axis=1)
+    np.testing.assert_allclose(
+        content, dense(at_cells, params["params"]["query_content"]), atol=1e-4
+    )
+    # The seed head starts at the RetinaNet prior: every class at probability 0.01.
+    np.testing.assert_allclose(params["params"]["seed_head"]["bias"], -np.log(99), rtol=1e-6)
+
+
+def test_mask_positional_adds_the_sine_code_where_the_masks_read_f_proj(feats):
+    """``head.mask_positional`` (docs/MODEL.md): masks are <m_j, F_proj + code> with code the
+    full-resolution sine code and m_j the mask MLP of each layer's queries. A mutation audit:
+    the flag doing nothing passed."""
+    from indoorbev_jax.models.head import code_map, positional_code
+
+    head = _head(mask_positional=True)
+    params = head.init(jax.random.key(1), feats)
+    out, inter = head.apply(params, feats, capture_intermediates=True, mutable=["intermediates"])
+    got = inter["intermediates"]
+    p = jax.tree.map(lambda a: np.asarray(a, np.float64), params["params"])
+    f_proj = np.asarray(got["input_proj_norm"]["__call__"][0], np.float64)
+    queries = np.stack(
+        [
+            np.asarray(got[f"decoder{i}"]["__call__"][0], np.float64)
+            for i in range(CFG.head.num_layers)
+        ]
+    )  # [L, B, Q, C]
+    m = np.maximum(dense(queries, p["mask_embed0"]), 0)
+    m = dense(np.maximum(dense(m, p["mask_embed1"]), 0), p["mask_embed2"])
+    code = np.asarray(code_map(*positional_code(H, W, CFG.head.hidden_dim), jnp.float32))
+    want = np.einsum("lbqc,bhwc->lbqhw", m, f_proj + code[None])
+    np.testing.assert_allclose(np.asarray(out["masks"], np.float64), want, atol=1e-4)
 
 
 def test_semantic_head_sows_seeds_beside_learned_queries(feats):

@@ -257,13 +257,23 @@ def test_backbone_outputs_are_zero_on_padding():
     """SwinBackbone zeroes padded cells after each stage (its docstring). 10 valid cells of 24
     give stage maps with 10, 5, 3, 2 valid of 24, 12, 6, 3; without the zeroing the padding holds
     MLP outputs and a patch merge pairs the last valid cell of an odd map with padding, so
-    padding-derived values reach valid cells (as in the small preset, 100 of 112)."""
+    padding-derived values reach valid cells (as in the small preset, 100 of 112). A mutation
+    audit: valid sizes rounded down (the last row of data dropped) and only the last stage
+    returned (every skip of the upsampler gone) passed."""
     cfg = Config.tiny().backbone
     x = jax.random.normal(jax.random.key(6), (1, 10, 10, 16))
     mod = SwinBackbone(cfg)
     params = jax.jit(mod.init, compiler_options=FAST)(jax.random.key(7), x)
     outs = jax.jit(mod.apply, compiler_options=FAST)(params, x)
-    for k, (_, valid, _) in enumerate(stage_geometry(10, cfg)):
+    geometry = stage_geometry(10, cfg)
+    # A cell is valid when it holds any valid cell of the stage before: ceil, not floor.
+    strides = np.cumprod(cfg.strides)
+    assert [v for _, v, _ in geometry] == [-(-10 // int(s)) for s in strides] == [10, 5, 3, 2]
+    # The stages out_indices names and the last (the upsampler's skips read them).
+    assert sorted(outs) == sorted(set(cfg.out_indices) | {len(cfg.strides) - 1})
+    for k, (_, valid, _) in enumerate(geometry):
         if k in outs:
             o = np.asarray(outs[k])
             assert np.all(o[:, valid:] == 0) and np.all(o[:, :, valid:] == 0), k
+            # The last valid row and column hold data (from the grid's last cells).
+            assert np.abs(o[:, valid - 1]).sum() > 0 and np.abs(o[:, :, valid - 1]).sum() > 0, k

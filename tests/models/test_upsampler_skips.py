@@ -1,6 +1,8 @@
 """Upsampler skips: a backbone whose first stride is 2 gets the encoder map at full size."""
 
 import dataclasses
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -8,6 +10,9 @@ import numpy as np
 
 from indoorbev_jax.config import Config
 from indoorbev_jax.models.head import AdaptiveUpsampler
+
+sys.path.insert(0, str(Path(__file__).parents[1]))
+from numpy_layers import dense  # noqa: E402
 
 
 def _param_names(skips: bool, first_stride: int) -> set[str]:
@@ -54,3 +59,20 @@ def test_stage_skip_lands_on_its_own_cell():
     moved = up.apply(params, {0: stages[0].at[0, 5, 7].set(1.0), 1: stages[1]})
     changed = np.argwhere(np.abs(np.asarray(moved - base)).sum(-1)[0] > 0)
     np.testing.assert_array_equal(changed, [[5, 7]])
+
+
+def test_a_step_is_dense_depth_to_space_gelu_plus_the_lateral_skip():
+    """One step from DESIGN section 7 / the class docstring, against numpy: Dense(4 C'), 2x
+    depth-to-space, GELU (flax's tanh form), then the same-resolution stage through its
+    lateral Dense. A mutation audit: the step without its GELU passed."""
+    x1 = np.asarray(jax.random.normal(jax.random.key(1), (2, 3, 3, 16)))
+    x0 = np.asarray(jax.random.normal(jax.random.key(2), (2, 6, 6, 8)))
+    up = AdaptiveUpsampler(1, 4, skips=True)
+    params = up.init(jax.random.key(0), {0: x0, 1: x1})
+    got = np.asarray(up.apply(params, {0: x0, 1: x1}), np.float64)
+    p = jax.tree.map(lambda a: np.asarray(a, np.float64), params["params"])
+    y = dense(x1.astype(np.float64), p["up0"])  # [2, 3, 3, 4 * 8]
+    y = y.reshape(2, 3, 3, 2, 2, 8).transpose(0, 1, 3, 2, 4, 5).reshape(2, 6, 6, 8)
+    gelu = 0.5 * y * (1 + np.tanh(np.sqrt(2 / np.pi) * (y + 0.044715 * y**3)))
+    want = gelu + dense(x0.astype(np.float64), p["lateral0"])
+    np.testing.assert_allclose(got, want, atol=2e-5)
