@@ -18,13 +18,17 @@ from indoorbev_jax.config import (
     ConfigError,
     GridConfig,
     InferenceConfig,
+    check_views,
 )
 from indoorbev_jax.data.rasterize import rasterize_boxes
 from indoorbev_jax.inference import (
     apply_views,
     fuse_views,
     panoptic_inference,
+    unview_batch,
+    unview_cells,
     unview_predictions,
+    view_batch,
     view_points,
 )
 from indoorbev_jax.types import Predictions
@@ -161,6 +165,88 @@ def test_fuse_views_matches_loop_rederivation(spread):
         np.testing.assert_allclose(
             np.asarray(getattr(fused, name)[0])[lead], ref[name][lead], atol=1e-4, err_msg=name
         )
+
+
+def test_a_duplicate_in_the_leaders_own_view_does_not_replace_the_leader():
+    """A leader is always a member of its own cluster, even when a lower-index query of its
+    own view has the same mask (Mask2Former-style duplicates): checked against the loop
+    re-derivation. A mutation audit: the leader not forced into its cluster (the duplicate
+    taken instead, the leader's own prediction lost) passed."""
+    v, q, h, w = 2, 3, 6, 6
+    logits = np.full((v, 1, 1, q, K), -5.0, np.float32)
+    masks = np.full((v, 1, 1, q, h, w), -10.0, np.float32)
+    logits[0, ..., 0, 0], masks[0, ..., 0, :3, :3] = 1.0, 2.0  # the duplicate, lower score
+    logits[0, ..., 1, 0], masks[0, ..., 1, :3, :3] = 5.0, 4.0  # the leader
+    logits[1, ..., 0, 0], masks[1, ..., 0, :3, :3] = 4.0, 3.0
+    rng = np.random.default_rng(0)
+
+    def uniform(*shape):
+        return jnp.asarray(rng.uniform(0.5, 1.5, (v, 1, 1, q) + shape), jnp.float32)
+
+    pred = Predictions(logits=jnp.asarray(logits), masks=jnp.asarray(masks), dims=uniform(3),
+                       pos=uniform(3), yaw=uniform(1))  # fmt: skip
+    ref = _fuse_reference(pred, 0.5, 0.5)
+    fused = fuse_views(pred, 0.5, 0.5)
+    lead = ref["count"] > 0
+    assert lead.sum() == 2  # the duplicate leads its own cluster, the leader takes view 1's
+    probs = np.asarray(jax.nn.softmax(fused.logits[0], -1))[..., :-1]
+    np.testing.assert_allclose(probs[lead], ref["fg"][lead], atol=1e-5)
+    np.testing.assert_allclose(np.asarray(fused.pos[0])[lead], ref["pos"][lead], atol=1e-5)
+
+
+def test_fuse_views_reads_only_the_last_decoder_layer():
+    """Fusion is of the final predictions: the earlier layers change nothing. A mutation
+    audit: fusing layer 0 passed every unit test (their predictions have one layer)."""
+    rng = np.random.default_rng(1)
+
+    def normal(*shape):
+        return jnp.asarray(rng.normal(0, 2, (2, 2, 1, 3) + shape), jnp.float32)  # [V, L, B, Q]
+
+    pred = Predictions(logits=normal(K), masks=normal(6, 7), dims=normal(3), pos=normal(3),
+                       yaw=normal(1))  # fmt: skip
+    got = fuse_views(pred, 0.5, 0.5)
+    want = fuse_views(jax.tree.map(lambda x: x[:, -1:], pred), 0.5, 0.5)
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_unview_batch_undoes_view_batch_with_several_frames():
+    """``view_batch`` stacks the V views view-major ([view 0 of every frame, view 1 ...]);
+    ``unview_batch`` must slice them back that way. A mutation audit: slicing frame-major
+    passed (every test used one frame, where both orders agree)."""
+    views, b = ("identity", "mirror_y"), 3
+    points = jnp.arange(b, dtype=jnp.float32)[:, None, None] * jnp.ones((b, 5, 4))
+    clouds, _ = view_batch(points, jnp.ones((b, 5), bool), views)
+    frame_of = np.asarray(clouds[:, 0, 2])  # z (no view changes it) carries the frame
+    n = len(views) * b
+    tag = jnp.asarray(frame_of, jnp.float32)[None, :, None, None] * jnp.ones((1, n, 2, K))
+
+    def zeros(*shape):
+        return jnp.zeros((1, n, 2) + shape)
+
+    stacked = unview_batch(
+        Predictions(logits=tag, dims=zeros(3), pos=zeros(3), yaw=zeros(1), masks=zeros(4, 4)), views
+    )
+    np.testing.assert_array_equal(np.asarray(stacked.logits[:, 0, :, 0, 0]), [[0, 1, 2]] * 2)
+
+
+@pytest.mark.parametrize("view", ["mirror_x", "mirror_y"])
+def test_mirror_views_map_back_on_a_grid_that_is_not_square(view):
+    """Mirror views are allowed on any grid: the cells of a box seen mirrored and mapped back
+    are the box's own on a 20 x 40 grid. A mutation audit: the row and column centres
+    swapped in the cell map passed (every other grid is square)."""
+    grid = GridConfig(x_range=(-2.0, 2.0), y_range=(-1.0, 1.0), cell_size=0.1)  # 20 x 40
+    check_views((view,), grid)
+    x, y, length, width, yaw = 0.73, -0.41, 1.26, 0.58, 0.37
+
+    def raster(bx, by, byaw):
+        boxes = jnp.array([[bx, by, length, width, byaw]], jnp.float32)
+        return np.asarray(rasterize_boxes(boxes, jnp.ones(1, bool), grid)[1][0])
+
+    seen = raster(x, -y, -yaw) if view == "mirror_y" else raster(-x, y, np.pi - yaw)
+    want = raster(x, y, yaw)
+    assert want.sum() > 50
+    np.testing.assert_array_equal(np.asarray(unview_cells(jnp.asarray(seen), view)), want)
 
 
 def test_an_empty_or_disjoint_mask_joins_no_cluster_at_view_iou_0():

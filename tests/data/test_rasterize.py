@@ -171,20 +171,24 @@ def test_edges_through_inexact_cell_centres_count_as_inside():
 def test_cell_index_on_a_workspace_not_centred_on_the_sensor():
     """The cell of (x, y) is (floor((y - y_min)/v), floor((x - x_min)/v)), clipped: on a
     forward-looking grid (x from 0, y from -4) rows and columns start at different origins,
-    which the centred grids of the other tests cannot tell apart."""
-    grid = GridConfig(x_range=(0.0, 8.0), y_range=(-4.0, 4.0), cell_size=0.5)  # H 16, W 16
+    which the centred grids of the other tests cannot tell apart. The grid is not square,
+    so rows clip at H - 1 and columns at W - 1 (a mutation audit: the two bounds swapped
+    passed on a square one)."""
+    grid = GridConfig(x_range=(0.0, 8.0), y_range=(-3.0, 3.0), cell_size=0.5)  # H 12, W 16
+    assert grid.shape == (12, 16)
     rng = np.random.default_rng(3)
     x = rng.uniform(-1.0, 9.0, 500).astype(np.float32)
-    y = rng.uniform(-5.0, 5.0, 500).astype(np.float32)
+    y = rng.uniform(-4.0, 4.0, 500).astype(np.float32)
     row, col, inside = cell_index(jnp.asarray(x), jnp.asarray(y), grid)
     v = np.float32(0.5)
-    want_row = np.clip(np.floor((y - np.float32(-4.0)) / v), 0, 15).astype(np.int32)
+    want_row = np.clip(np.floor((y - np.float32(-3.0)) / v), 0, 11).astype(np.int32)
     want_col = np.clip(np.floor((x - np.float32(0.0)) / v), 0, 15).astype(np.int32)
-    want_inside = (x >= 0) & (x <= 8) & (y >= -4) & (y <= 4)
+    want_inside = (x >= 0) & (x <= 8) & (y >= -3) & (y <= 3)
     np.testing.assert_array_equal(np.asarray(row), want_row)
     np.testing.assert_array_equal(np.asarray(col), want_col)
     np.testing.assert_array_equal(np.asarray(inside), want_inside)
-    assert 0 < want_inside.sum() < 500 and len(np.unique(want_row[want_inside])) == 16
+    assert 0 < want_inside.sum() < 500 and len(np.unique(want_row[want_inside])) == 12
+    assert len(np.unique(want_col[want_inside])) == 16
 
 
 def test_the_workspace_is_closed_in_z():
