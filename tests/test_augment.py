@@ -68,6 +68,13 @@ def test_mirror_flips_rows_exactly():
     )
     np.testing.assert_array_equal(out.targets.masks, frame.targets.masks[:, ::-1, :])
     np.testing.assert_allclose(out.points[:, 1], -frame.points[:, 1])
+    # The heading vector is mirrored too: (cos, sin) -> (cos, -sin). A mutation audit:
+    # pi - yaw (the same outline, the opposite heading, which the yaw loss tells apart)
+    # passed.
+    v = np.asarray(frame.targets.valid)
+    yaw, mirrored = np.asarray(frame.targets.yaw)[v], np.asarray(out.targets.yaw)[v]
+    np.testing.assert_allclose(np.cos(mirrored), np.cos(yaw), atol=1e-6)
+    np.testing.assert_allclose(np.sin(mirrored), -np.sin(yaw), atol=1e-6)
     check_consistent(out)
 
 
@@ -449,6 +456,65 @@ def test_box_noise_does_not_push_objects_into_a_wall():
         inside = (np.abs(local) <= dims[:2] / 2).all(-1) & (pts[:, 2] > 0.05)
         inside &= pts[:, 2] <= pos[2] + dims[2] / 2
         assert (inside & scene).sum() <= aug.SCENE_POINTS_LIMIT, k
+
+
+def test_box_noise_refuses_exactly_the_moves_that_reach_into_a_wall():
+    """Object 0 (1.6 x 0.8 m, yaw 0.4, its corner 0.1 m from a wall at x = 2.5): a move is
+    undone exactly when its box, in the box's own turned frame (with BOX_MARGIN, above the
+    floor margin), holds more than SCENE_POINTS_LIMIT wall points. The moves proposed are
+    read from the same keys on the frame without the wall, where none is refused for it. A
+    mutation audit: the across coordinate's sign flipped (a box turned the other way
+    checked, most legal moves undone) passed the square object's test above."""
+    rng = np.random.default_rng(0)
+    wall = _wall(0, 2.5, -4.5, 4.5, 400, rng)
+    free = make_frame()
+    cfg = dataclasses.replace(OFF, box_noise_prob=1.0, box_translation_std=0.3)
+    keys = jax.random.split(jax.random.key(0), 64)
+    noise = jax.vmap(lambda k, f: aug.box_noise(k, f, GRID, cfg), in_axes=(0, None))
+    proposed, walled = noise(keys, free).targets, noise(keys, _with_points(free, wall)).targets
+    t0 = free.targets
+    x0 = float(t0.pos[0, 0])
+    was_moved = np.asarray(proposed.pos[:, 0, 0]) != x0
+    kept = np.asarray(walled.pos[:, 0, 0]) != x0
+    bottom = float(t0.pos[0, 2] - t0.dims[0, 2] / 2) + aug.FLOOR_MARGIN
+    want = np.zeros(len(keys), bool)
+    for k in np.flatnonzero(was_moved):
+        pos, dims, yaw = (np.asarray(a[k, 0], np.float64) for a in (
+            proposed.pos, proposed.dims, proposed.yaw))  # fmt: skip
+        d = wall[:, :2] - pos[:2]
+        c, s = np.cos(yaw), np.sin(yaw)
+        local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
+        inside = (np.abs(local) <= dims[:2] / 2 + aug.BOX_MARGIN).all(-1)
+        inside &= (wall[:, 2] > bottom) & (wall[:, 2] <= float(t0.pos[0, 2]) + dims[2] / 2)
+        want[k] = inside.sum() <= aug.SCENE_POINTS_LIMIT
+    assert 10 <= want.sum() <= was_moved.sum() - 10  # both outcomes, many times
+    np.testing.assert_array_equal(kept, want)
+    np.testing.assert_array_equal(np.asarray(walled.pos)[kept], np.asarray(proposed.pos)[kept])
+
+
+@pytest.mark.parametrize(
+    "new_valid", [(True, True, True), (True, False, False), (False, True, True)]
+)
+@pytest.mark.parametrize("free", [(1, 3, 4, 6), (1, 3)])
+def test_fill_free_slots_writes_the_ith_new_row_into_the_ith_free_slot(new_valid, free):
+    """Ground-truth sampling pastes points through ``_fill_free_slots``: row i of the new
+    points goes into the i-th free slot, where valid; rows past the free slots are dropped.
+    Against a loop. A mutation audit: the rank off by one (row 0 lost, an object whose only
+    point is its first pasted with none) passed."""
+    points = np.zeros((8, 4), np.float32)
+    points[:, 0] = np.arange(8) + 100
+    valid = ~np.isin(np.arange(8), free)
+    new = np.zeros((3, 4), np.float32)
+    new[:, 0] = [1, 2, 3]
+    want_points, want_valid = points.copy(), valid.copy()
+    for i, slot in enumerate(np.flatnonzero(~valid)[: len(new)]):
+        if new_valid[i]:
+            want_points[slot], want_valid[slot] = new[i], True
+    got_points, got_valid = aug._fill_free_slots(
+        jnp.asarray(points), jnp.asarray(valid), jnp.asarray(new), jnp.asarray(new_valid)
+    )
+    np.testing.assert_array_equal(np.asarray(got_points), want_points)
+    np.testing.assert_array_equal(np.asarray(got_valid), want_valid)
 
 
 def test_gt_sampling_pastes_nothing_behind_the_walls():

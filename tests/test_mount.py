@@ -154,12 +154,24 @@ def test_empty_and_all_nan_clouds_leave_nothing_valid(model_file):
         assert counts["nonfinite_points"] == len(cloud)
 
 
-def test_blind_zone_follows_the_moved_sensor():
-    """A driver's (0, 0, 0) no-return point stays blind after the height move."""
+def test_blind_zone_follows_the_moved_sensor(model_file):
+    """A driver's (0, 0, 0) no-return point stays blind after the height move, in
+    ``pad_points`` and through ``Predictor.prepare`` for a lidar above and below the trained
+    heights. A mutation audit: the predictor's blind zone centred at -z_offset (the
+    no-return point of a high lidar kept as a return at the sensor) passed."""
     grid = CFG.grid
     cloud = np.array([[0.0, 0.0, 0.4, 0.0], [2.0, 0.0, 0.4, 0.0]], np.float32)
     _, valid, counts = pad_points(cloud, grid, 4, 0.1, origin=(0.0, 0.0, 0.4))
     assert counts["blind_points"] == 1 and valid.sum() == 1
+    config, params = P.load_model(model_file)
+    lo, hi = TRAINED
+    raw = np.array([[0.0, 0.0, 0.0, 0.0], [2.0, 0.5, 0.0, 0.0]], np.float32)
+    for height in (hi + 0.3, lo - 0.2):
+        predictor = P.Predictor(config, params, mount=LidarMount(height=height))
+        assert abs(predictor.z_offset) > 0.15
+        padded, valid, counts = predictor.prepare(raw)
+        assert counts["blind_points"] == 1 and valid.sum() == 1, height
+        np.testing.assert_allclose(padded[valid], [[2.0, 0.5, predictor.z_offset, 0.0]], atol=1e-6)
 
 
 def test_tilted_scan_levelled_gives_the_level_scans_prediction(model_file):

@@ -162,7 +162,8 @@ def _cloud(fields, dtype, points, bigendian=False):
     ts = typestore()
     t = ts.types
     pf = t["sensor_msgs/msg/PointField"]
-    codes = {"f4": 7, "f8": 8, "u2": 4, "u1": 2}
+    # The datatypes as sensor_msgs/PointField defines them (not our reader's table).
+    codes = {"f4": pf.FLOAT32, "f8": pf.FLOAT64, "u2": pf.UINT16, "u1": pf.UINT8, "i1": pf.INT8}
     arr = np.zeros(len(points["x"]), dtype=dtype)
     for name in fields:
         arr[name] = points[name]
@@ -209,6 +210,15 @@ def test_pointcloud2_any_layout():
                    ("intensity", "<f4")])  # fmt: skip
     got = pointcloud2_to_points(_cloud(["x", "y", "z", "reflectivity", "intensity"], d6, src))
     np.testing.assert_array_equal(got, expected)
+    # One-byte fields: a uint8 intensity of 0-254 and int8 coordinates of either sign. A
+    # mutation audit: INT8 and UINT8 swapped (intensity 150 read as -106) passed.
+    small = {"x": rng.integers(-128, 128, n), "y": rng.integers(-128, 128, n),
+             "z": rng.integers(-128, 128, n), "intensity": np.arange(n) * 5}  # fmt: skip
+    d7 = np.dtype([("x", "i1"), ("y", "i1"), ("z", "i1"), ("intensity", "u1")])
+    got = pointcloud2_to_points(_cloud(["x", "y", "z", "intensity"], d7, small))
+    want = np.stack([small[k] for k in ("x", "y", "z", "intensity")], 1).astype(np.float32)
+    assert (want[:, :3] < 0).any() and want[:, 3].max() > 127
+    np.testing.assert_array_equal(got, want)
     with pytest.raises(BagError, match=r"lacks field\(s\) \['z'\]"):
         d4 = np.dtype([("x", "<f4"), ("y", "<f4")])
         pointcloud2_to_points(_cloud(["x", "y"], d4, src))

@@ -487,6 +487,25 @@ def test_kitti_source_reshuffles_every_epoch_and_with_the_seed(data):
     assert read(1, 0) != first
 
 
+def test_an_epoch_of_a_split_that_batches_do_not_divide_reads_no_frame_twice(data, tmp_path):
+    """5 frames in batches of 2: an epoch is 2 steps (4 distinct frames of its order), the
+    fifth waits for a later epoch, and step 2 starts epoch 1's order. A mutation audit: the
+    steps per epoch rounded up (step 2 wrapped to epoch 0's first frame again) passed, every
+    other split dividing evenly."""
+    import shutil
+
+    own = tmp_path / "own"
+    shutil.copytree(data, own)
+    (own / "train.txt").write_text("\n".join(kitti.read_split(own, "train")[:5]) + "\n")
+    dataset = KittiDataset(own, "train", CFG)
+    index = {dataset.load(k)[0].points.tobytes(): k for k in range(len(dataset))}
+    assert len(index) == len(dataset) == 5 and CFG.train.batch_size == 2
+    source = sources.KittiSource(own, "train", CFG, seed=3)
+    read = [[index[p.tobytes()] for p in np.asarray(source(step).points)] for step in range(3)]
+    assert read[0] + read[1] == source._order(0)[:4].tolist()
+    assert read[2] == source._order(1)[:2].tolist()
+
+
 def test_a_frame_with_more_objects_than_max_objects_is_named(data, tmp_path, caplog):
     """Targets keep the first data.max_objects objects; the rest trained (and were scored)
     as background without a word. Now the start refuses naming the file, and with
@@ -855,6 +874,31 @@ def test_each_use_of_the_run_key_has_its_own_stream(tmp_path, quick_start, monke
         for name, n in (("train", 0), ("val", 1)):
             want = jax.random.key_data(jax.random.fold_in(root, n))
             np.testing.assert_array_equal(data[name], want)
+
+
+def test_each_train_step_draws_its_own_augmentation(monkeypatch):
+    """The step's augmentation key is split from fold_in(run key, step): another draw each
+    step. A mutation audit: every step augmenting with the same key passed (the tests above
+    check only the run key the steps are handed)."""
+    import types
+
+    seen = []
+
+    def record(config, batch, key, database):
+        seen.append(key)
+        raise _Stop
+
+    monkeypatch.setattr(T, "training_batch", record)
+    cfg = dataclasses.replace(CFG, train=dataclasses.replace(CFG.train, augment=True))
+    step, key = T.make_train_step(cfg), jax.random.key(7)
+    for s in (0, 1):
+        with pytest.raises(_Stop):
+            step(types.SimpleNamespace(step=jnp.int32(s)), None, key, None)
+    want = [jax.random.split(jax.random.fold_in(key, s))[0] for s in (0, 1)]
+    got = [np.asarray(jax.random.key_data(k)) for k in seen]
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, jax.random.key_data(w))
+    assert not np.array_equal(got[0], got[1])
 
 
 def test_box_targets_are_the_rasterised_labelled_boxes(batch):

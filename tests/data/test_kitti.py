@@ -158,6 +158,9 @@ GOOD = "Table 0.00 0 -10 0 0 0 0 1.0 1.0 1.0 0.0 0.0 2.0 0.0"
         (GOOD.replace("1.0 1.0 1.0", "-1.0 1.0 1.0"), r"l\.txt:2: dimensions h w l must be"),
         # A zero size is no object either (ground truth; a box without cells).
         (GOOD.replace("1.0 1.0 1.0", "1.0 0.0 1.0"), r"l\.txt:2: .* positive, got 1\.0 0\.0 1\.0"),
+        # Each of h, w and l (a mutation audit: l left unchecked passed).
+        (GOOD.replace("1.0 1.0 1.0", "0.0 1.0 1.0"), r"l\.txt:2: .* positive, got 0\.0 1\.0 1\.0"),
+        (GOOD.replace("1.0 1.0 1.0", "1.0 1.0 0.0"), r"l\.txt:2: .* positive, got 1\.0 1\.0 0\.0"),
         (GOOD + " 0.9", r"l\.txt:2: some lines .* \(line 2 has one, line 1 has none\)"),
         # float() reads "0_5" as 5.0; 1e39 is finite in float64 but inf in float32.
         (GOOD.replace("2.0", "0_5"), r"l\.txt:2: non-numeric field \('_' in '0_5'\)"),

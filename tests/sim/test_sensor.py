@@ -172,6 +172,14 @@ def test_intensity_from_reflectivity_and_incidence(scene):
     got = _scan(mx, dx, flat, dirs, jax.random.key(0), cfg, reflectivity=refl)
     want = _scan(mx, dx, pose, dirs, jax.random.key(0), cfg, reflectivity=refl)
     np.testing.assert_array_equal(np.asarray(got.points), np.asarray(want.points))
+    # A pitched sensor: the incidence is the world ray's (R d) on the floor, not the sensor
+    # frame's. A mutation audit: the sensor-frame rays (an identity pose cannot tell) passed.
+    rot = Rotation.from_euler("y", 30.0, degrees=True).as_matrix()
+    pitched = sensor.Pose(jnp.array([0.0, 0.0, 1.0]), jnp.asarray(rot, jnp.float32))
+    s = _scan(mx, dx, pitched, dirs, jax.random.key(0), cfg, reflectivity=refl)
+    world_z = (dirs.astype(np.float64) @ rot.T)[:, 2]
+    assert (world_z < 0).all() and np.asarray(s.geom_id).tolist() == [0] * 4
+    np.testing.assert_allclose(np.asarray(s.points[:, 3]), 0.8 * np.abs(world_z), atol=1e-5)
 
 
 def test_batched_scenes_and_poses(scene):
