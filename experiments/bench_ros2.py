@@ -1,7 +1,7 @@
 """Benchmark the live loop: simulated PointCloud2 -> ``indoorbev ros2 detect`` -> detections.
 
-This process publishes simulator frames (``--preset``, default small: about 20k points,
-320 kB a cloud) stamped with the publish time, and receives the detect node's detections,
+This process publishes simulator frames (``--preset``, default small: about 17k points,
+280 kB a cloud) stamped with the publish time, and receives the detect node's detections,
 which carry the cloud's stamp, so ``receive time - stamp`` is the end-to-end latency. The
 detect node runs as its own process (Fast DDS over loopback) on an untrained model of the
 preset (the weights do not change the work of the jitted model; inference runs with
