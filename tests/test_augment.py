@@ -470,7 +470,7 @@ def test_box_noise_refuses_exactly_the_moves_that_reach_into_a_wall():
     free = make_frame()
     cfg = dataclasses.replace(OFF, box_noise_prob=1.0, box_translation_std=0.3)
     keys = jax.random.split(jax.random.key(0), 64)
-    noise = jax.vmap(lambda k, f: aug.box_noise(k, f, GRID, cfg), in_axes=(0, None))
+    noise = jax.jit(jax.vmap(lambda k, f: aug.box_noise(k, f, GRID, cfg), in_axes=(0, None)))
     proposed, walled = noise(keys, free).targets, noise(keys, _with_points(free, wall)).targets
     t0 = free.targets
     x0 = float(t0.pos[0, 0])
