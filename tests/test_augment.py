@@ -432,6 +432,14 @@ def _wall(axis, at, lo, hi, count, rng):
     return np.c_[xy, z, np.full(count, 0.5)]
 
 
+def _box_frame(points, centre, yaw):
+    """xy of ``points`` [P, >=2] in the frame of a box centred on ``centre`` (its xy) and
+    turned by ``yaw`` (its heading along +x): [P, 2]."""
+    d = points[:, :2] - centre[:2]
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
+
+
 def test_box_noise_does_not_push_objects_into_a_wall():
     """Object 1 (0.5 x 0.5 m at x = -2.0) stands 0.1 m from a wall at x = -2.45: a move into
     the wall is undone, as ground-truth sampling refuses a pose with wall points inside."""
@@ -450,10 +458,7 @@ def test_box_noise_does_not_push_objects_into_a_wall():
     for k in np.flatnonzero(moved):
         pos, dims, yaw = (np.asarray(a[k, 1]) for a in (out.targets.pos, out.targets.dims,
                                                         out.targets.yaw))  # fmt: skip
-        d = pts[:, :2] - pos[:2]
-        c, s = np.cos(yaw), np.sin(yaw)
-        local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
-        inside = (np.abs(local) <= dims[:2] / 2).all(-1) & (pts[:, 2] > 0.05)
+        inside = (np.abs(_box_frame(pts, pos, yaw)) <= dims[:2] / 2).all(-1) & (pts[:, 2] > 0.05)
         inside &= pts[:, 2] <= pos[2] + dims[2] / 2
         assert (inside & scene).sum() <= aug.SCENE_POINTS_LIMIT, k
 
@@ -481,10 +486,7 @@ def test_box_noise_refuses_exactly_the_moves_that_reach_into_a_wall():
     for k in np.flatnonzero(was_moved):
         pos, dims, yaw = (np.asarray(a[k, 0], np.float64) for a in (
             proposed.pos, proposed.dims, proposed.yaw))  # fmt: skip
-        d = wall[:, :2] - pos[:2]
-        c, s = np.cos(yaw), np.sin(yaw)
-        local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
-        inside = (np.abs(local) <= dims[:2] / 2 + aug.BOX_MARGIN).all(-1)
+        inside = (np.abs(_box_frame(wall, pos, yaw)) <= dims[:2] / 2 + aug.BOX_MARGIN).all(-1)
         inside &= (wall[:, 2] > bottom) & (wall[:, 2] <= float(t0.pos[0, 2]) + dims[2] / 2)
         want[k] = inside.sum() <= aug.SCENE_POINTS_LIMIT
     assert 10 <= want.sum() <= was_moved.sum() - 10  # both outcomes, many times
@@ -782,9 +784,7 @@ def test_box_noise_scales_points_with_the_box_and_floor_returns_block_nothing():
                                                      a.targets.yaw))  # fmt: skip
 
     def local(p, centre, heading):  # [P, 3] in the box frame (heading along +x)
-        d = p[:, :3] - centre
-        c, s = np.cos(heading), np.sin(heading)
-        return np.c_[c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]]
+        return np.c_[_box_frame(p, centre, heading), p[:, 2] - centre[2]]
 
     p0, p1 = np.asarray(frame.points), np.asarray(a.points)
     rescaled = floor_under = 0

@@ -123,31 +123,6 @@ def test_select_queries_start_at_their_cells_and_sow_the_seeds(feats):
     np.testing.assert_allclose(params["params"]["seed_head"]["bias"], -np.log(99), rtol=1e-6)
 
 
-def test_mask_positional_adds_the_sine_code_where_the_masks_read_f_proj(feats):
-    """``head.mask_positional`` (docs/MODEL.md): masks are <m_j, F_proj + code> with code the
-    full-resolution sine code and m_j the mask MLP of each layer's queries. A mutation audit:
-    the flag doing nothing passed."""
-    from indoorbev_jax.models.head import code_map, positional_code
-
-    head = _head(mask_positional=True)
-    params = head.init(jax.random.key(1), feats)
-    out, inter = head.apply(params, feats, capture_intermediates=True, mutable=["intermediates"])
-    got = inter["intermediates"]
-    p = jax.tree.map(lambda a: np.asarray(a, np.float64), params["params"])
-    f_proj = np.asarray(got["input_proj_norm"]["__call__"][0], np.float64)
-    queries = np.stack(
-        [
-            np.asarray(got[f"decoder{i}"]["__call__"][0], np.float64)
-            for i in range(CFG.head.num_layers)
-        ]
-    )  # [L, B, Q, C]
-    m = np.maximum(dense(queries, p["mask_embed0"]), 0)
-    m = dense(np.maximum(dense(m, p["mask_embed1"]), 0), p["mask_embed2"])
-    code = np.asarray(code_map(*positional_code(H, W, CFG.head.hidden_dim), jnp.float32))
-    want = np.einsum("lbqc,bhwc->lbqhw", m, f_proj + code[None])
-    np.testing.assert_allclose(np.asarray(out["masks"], np.float64), want, atol=1e-4)
-
-
 def test_semantic_head_sows_seeds_beside_learned_queries(feats):
     head = _head(semantic_head=True)
     params = head.init(jax.random.key(7), feats)

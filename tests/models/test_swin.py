@@ -24,7 +24,7 @@ from indoorbev_jax.models.swin import (
 )
 
 sys.path.insert(0, str(Path(__file__).parents[1]))
-from numpy_layers import dense, layer_norm  # noqa: E402
+from numpy_layers import dense, gelu, layer_norm  # noqa: E402
 
 # Tests only need correct numbers; skipping LLVM's optimisation halves compile time.
 FAST = {"xla_backend_optimization_level": 0}
@@ -147,10 +147,6 @@ def test_shifted_window_attention_never_crosses_a_shift_boundary_or_reads_paddin
 _ln, _dense = layer_norm, dense
 
 
-def _gelu(x):  # flax nn.gelu default (tanh approximation)
-    return 0.5 * x * (1 + np.tanh(np.sqrt(2 / np.pi) * (x + 0.044715 * x**3)))
-
-
 def _softmax(z):
     e = np.exp(z - z.max(-1, keepdims=True))
     return e / e.sum(-1, keepdims=True)
@@ -249,7 +245,7 @@ def test_shifted_swin_block_matches_numpy():
     y = _windows(np.roll(_ln(x, pp["norm1"]), (-s, -s), (0, 1)), ws)
     y = _window_attention(y, pp["attn"], 2, ws, lw[:, :, None] == lw[:, None, :])
     x1 = x + np.roll(_unwindows(y, ws, r), (s, s), (0, 1))
-    ref = x1 + _dense(_gelu(_dense(_ln(x1, pp["norm2"]), pp["fc1"])), pp["fc2"])
+    ref = x1 + _dense(gelu(_dense(_ln(x1, pp["norm2"]), pp["fc1"])), pp["fc2"])
     np.testing.assert_allclose(out, ref, rtol=1e-4, atol=1e-4)
 
 

@@ -12,7 +12,7 @@ from indoorbev_jax.config import Config
 from indoorbev_jax.models.head import AdaptiveUpsampler
 
 sys.path.insert(0, str(Path(__file__).parents[1]))
-from numpy_layers import dense  # noqa: E402
+from numpy_layers import dense, gelu  # noqa: E402
 
 
 def _param_names(skips: bool, first_stride: int) -> set[str]:
@@ -73,6 +73,5 @@ def test_a_step_is_dense_depth_to_space_gelu_plus_the_lateral_skip():
     p = jax.tree.map(lambda a: np.asarray(a, np.float64), params["params"])
     y = dense(x1.astype(np.float64), p["up0"])  # [2, 3, 3, 4 * 8]
     y = y.reshape(2, 3, 3, 2, 2, 8).transpose(0, 1, 3, 2, 4, 5).reshape(2, 6, 6, 8)
-    gelu = 0.5 * y * (1 + np.tanh(np.sqrt(2 / np.pi) * (y + 0.044715 * y**3)))
-    want = gelu + dense(x0.astype(np.float64), p["lateral0"])
+    want = gelu(y) + dense(x0.astype(np.float64), p["lateral0"])
     np.testing.assert_allclose(got, want, atol=2e-5)
