@@ -222,6 +222,15 @@ def test_pointcloud2_any_layout():
     with pytest.raises(BagError, match=r"lacks field\(s\) \['z'\]"):
         d4 = np.dtype([("x", "<f4"), ("y", "<f4")])
         pointcloud2_to_points(_cloud(["x", "y"], d4, src))
+    # A field named twice (x at 0 and again at 12): the last one silently won, x read from
+    # the other field's bytes. Refused, as the PCD reader refuses FIELDS x y z x.
+    d8 = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
+    twice = _cloud(["x", "y", "z", "intensity"], d8, src)
+    twice.fields[3].name = "x"
+    with pytest.raises(
+        BagError, match=r"names field\(s\) \['x'\] more than once: \['x', 'y', 'z', 'x'\]"
+    ):
+        pointcloud2_to_points(twice, "scan")
 
 
 def test_predict_kitti_then_bag_round_trip(model_file, tmp_path, capsys):

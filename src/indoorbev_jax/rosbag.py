@@ -186,6 +186,9 @@ def markers_to_labels(msg, data_config) -> kitti.ObjectLabels:
     )
 
 
+_INTENSITY = ("intensity", "reflectivity")  # PointCloud2 field names read as intensity
+
+
 def pointcloud2_to_points(msg, source: str = "PointCloud2") -> np.ndarray:
     """float32 [N, 4] (x, y, z, intensity) from a PointCloud2 of any field layout.
 
@@ -194,13 +197,17 @@ def pointcloud2_to_points(msg, source: str = "PointCloud2") -> np.ndarray:
     organized clouds (height > 1) whose rows are padded (``row_step`` > width x point_step).
     """
     fields = {f.name: f for f in msg.fields}
+    names = [f.name for f in msg.fields]
+    twice = sorted({n for n in names if names.count(n) > 1} & {"x", "y", "z", *_INTENSITY})
+    if twice:  # the last one silently won: x read from another field's bytes
+        raise BagError(f"{source}: PointCloud2 names field(s) {twice} more than once: {names}")
     missing = [n for n in ("x", "y", "z") if n not in fields]
     if missing:
         have = sorted(fields)
         raise BagError(f"{source}: PointCloud2 lacks field(s) {missing}; it has {have}")
     order = ">" if msg.is_bigendian else "<"
     width, height, step = int(msg.width), int(msg.height), int(msg.point_step)
-    name_i = next((c for c in ("intensity", "reflectivity") if c in fields), None)
+    name_i = next((c for c in _INTENSITY if c in fields), None)
     dtypes = {}
     # Every field read must fit in point_step before the sizes below are trusted: with
     # point_step 0 the data check needs no bytes, and width x height went unbounded.

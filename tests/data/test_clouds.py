@@ -1,5 +1,7 @@
 """PCL .pcd and numpy .npy clouds read as KITTI .bin points: known values, bad files named."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -175,6 +177,40 @@ def test_npy_arrays_and_structured_arrays(tmp_path):
         np.save(tmp_path / f"{name}.npy", arr, allow_pickle=True)
         with pytest.raises(kitti.DatasetError, match=message):
             clouds.read_cloud(tmp_path / f"{name}.npy")
+    # Fields that are not one number a point: text failed with numpy's bare message and a
+    # sub-array with another, a complex z lost its imaginary part silently.
+    for name, field in (("text", "U4"), ("pair", ("<f4", (2,))), ("complex", "<c8")):
+        dtype = [("x", "<f4"), ("y", "<f4"), ("z", field), ("intensity", "<f4")]
+        np.save(tmp_path / f"{name}.npy", np.zeros(5, dtype))
+        with pytest.raises(kitti.DatasetError) as refused:
+            clouds.read_cloud(tmp_path / f"{name}.npy")
+        said = f"{tmp_path / name}.npy: field 'z' is {np.dtype([('z', field)])['z']}, expected one"
+        assert str(refused.value).startswith(said)
+
+
+def test_an_npy_header_larger_than_its_file_is_refused_before_loading(tmp_path):
+    """A header's shape of 10**11 points made np.load ask for 1.46 TiB: a MemoryError, which
+    predict lets through as the machine's, stopped a whole folder run naming no file. The
+    header is checked against the file's size first; a truncated file is named the same
+    way (np.load said only "could only read 93 elements")."""
+    header = {"descr": "<f4", "fortran_order": False, "shape": (10**11, 4)}
+    with open(tmp_path / "huge.npy", "wb") as f:
+        np.lib.format.write_array_header_1_0(f, header)
+        f.write(POINTS[:10].tobytes())
+    said = (
+        f"{tmp_path / 'huge.npy'}: its header says shape (100000000000, 4) of float32 "
+        "(1600000000000 bytes), but the file holds 160 bytes of data"
+    )
+    with pytest.raises(kitti.DatasetError, match=re.escape(said)):
+        clouds.read_cloud(tmp_path / "huge.npy")
+    np.save(tmp_path / "cut.npy", POINTS)
+    data = (tmp_path / "cut.npy").read_bytes()
+    (tmp_path / "cut.npy").write_bytes(data[:-4])
+    with pytest.raises(kitti.DatasetError, match=r"cut\.npy: its header says shape \(50, 4\)"):
+        clouds.read_cloud(tmp_path / "cut.npy")
+    with open(tmp_path / "v2.npy", "wb") as f:  # a version 2.0 header reads the same
+        np.lib.format.write_array(f, POINTS, version=(2, 0))
+    np.testing.assert_array_equal(clouds.read_cloud(tmp_path / "v2.npy"), POINTS)
 
 
 def test_files_that_are_no_npy_are_named_as_such(tmp_path, recwarn):

@@ -299,6 +299,36 @@ def test_a_failed_write_names_the_file_and_leaves_nothing(tmp_path):
         fileio.atomic_write(tmp_path / ("n" * 300) / "a.bin", full)
 
 
+def test_a_pipe_where_a_label_mask_or_split_file_goes_is_named_not_read(tmp_path):
+    """A named pipe in label_2/, mask_2/ or as a split list blocked `indoorbev eval` and
+    `dataset check` forever in open(), as it did the cloud readers before (test_clouds)."""
+    import threading
+
+    for name in ("train.txt", "a.txt", "a.png"):
+        os.mkfifo(tmp_path / name)
+    reads = {
+        "train.txt": (lambda: kitti.read_split(tmp_path, "train"), "a split file"),
+        "a.txt": (lambda: kitti.read_labels(tmp_path / "a.txt", DataConfig()), "a label file"),
+        "a.png": (lambda: kitti.read_mask(tmp_path / "a.png", (8, 8)), "a PNG mask"),
+    }
+    for name, (read, what) in reads.items():
+
+        def unblock(name=name):  # a read blocked in open() gets EOF, and the test fails
+            try:
+                os.close(os.open(tmp_path / name, os.O_WRONLY | os.O_NONBLOCK))
+            except OSError:  # no reader waiting: the read did not block
+                pass
+
+        rescue = threading.Timer(10.0, unblock)
+        rescue.start()
+        try:
+            with pytest.raises(kitti.DatasetError) as refused:
+                read()
+        finally:
+            rescue.cancel()
+        assert str(refused.value) == f"{tmp_path / name}: a pipe, socket or device, not {what}"
+
+
 def test_split_files_from_other_editors(tmp_path):
     """A byte-order mark and CRLF (Windows editors) are read; a split that is not UTF-8 or
     is a folder is a DatasetError naming it; hidden files are not frames."""
@@ -308,7 +338,7 @@ def test_split_files_from_other_editors(tmp_path):
     with pytest.raises(kitti.DatasetError, match=r"latin\.txt:2: not a UTF-8 text file"):
         kitti.read_split(tmp_path, "latin")
     (tmp_path / "folder.txt").mkdir()
-    with pytest.raises(kitti.DatasetError, match=r"folder\.txt: cannot read the split file"):
+    with pytest.raises(kitti.DatasetError, match=r"folder\.txt: a folder, not a split file"):
         kitti.read_split(tmp_path, "folder")
     (tmp_path / "label_2").mkdir()
     for name in ("000000.txt", "._000000.txt", ".hidden.txt"):
@@ -533,6 +563,19 @@ def test_stale_temporaries_go_by_their_age_and_the_jobs(tmp_path):
     # At the end of a 30 s job: what is older than the job goes, what is younger stays.
     fileio.remove_stale_temporaries(tmp_path, "*", fileio.age_since(now - 30))
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(ages)[:2]
+    # Only atomic_write's own: a hidden file of another name (not 8 characters before
+    # .tmp) and a symlink of its naming (its target is someone's) stay, however old.
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "notes.txt").write_text("mine")
+    (theirs / ".e.txt.old.tmp").write_bytes(b"x")
+    (theirs / ".f.txt.abcd1234.tmp").write_bytes(b"x")
+    (theirs / ".g.txt.efgh5678.tmp").symlink_to(theirs / "notes.txt")
+    for path in theirs.iterdir():
+        os.utime(path, (now - 7200, now - 7200))
+    fileio.remove_stale_temporaries(theirs, "*", 60.0)
+    left = sorted(p.name for p in theirs.iterdir())
+    assert left == [".e.txt.old.tmp", ".g.txt.efgh5678.tmp", "notes.txt"]
 
 
 def test_hold_folder_names_the_holder_and_what_stands_in_its_way(tmp_path, monkeypatch):
@@ -544,6 +587,8 @@ def test_hold_folder_names_the_holder_and_what_stands_in_its_way(tmp_path, monke
     import fcntl
 
     held = tmp_path / "held"
+    with fileio.hold_folder(held, "predict run", "--out"):  # the next holder's line replaces it
+        pass
     with fileio.hold_folder(held, "export", "--out"):
         assert (held / ".lock").read_text() == f"export, pid {os.getpid()}\n"
         said = rf"held: in use by another export \(pid {os.getpid()}\); wait .* another --out"
@@ -573,11 +618,14 @@ def test_hold_folder_names_the_holder_and_what_stands_in_its_way(tmp_path, monke
             pass
     assert target.read_text() == "mine"
 
-    def read_only(folder, *args, **kwargs):
-        raise OSError(errno.EROFS, "Read-only file system")
+    # Read-only media, and a folder this user may not write (chmod, as root never sees).
+    for code in (errno.EROFS, errno.EACCES):
 
-    monkeypatch.setattr(fileio, "_open_lock", read_only)
-    ran = []
-    with fileio.hold_folder(held, "predict run", "--out"):
-        ran.append(True)
-    assert ran == [True]
+        def read_only(folder, *args, code=code, **kwargs):
+            raise OSError(code, os.strerror(code))
+
+        monkeypatch.setattr(fileio, "_open_lock", read_only)
+        ran = []
+        with fileio.hold_folder(held, "predict run", "--out"):
+            ran.append(True)
+        assert ran == [True]

@@ -118,10 +118,10 @@ class ObjectLabels:
 # Points ------------------------------------------------------------------------------------
 
 
-def check_cloud_file(path: Path) -> None:
+def check_regular_file(path: Path, what: str) -> None:
     """Raises ``DatasetError`` when ``path`` names something that is no regular file (a
-    folder, a broken symlink, a pipe that would block the read forever); a missing path is
-    left to the read's own ``FileNotFoundError``."""
+    folder, a broken symlink, a pipe that would block the read forever), saying it is not
+    ``what``; a missing path is left to the read's own ``FileNotFoundError``."""
     if path.is_file() or not (path.exists() or path.is_symlink()):
         return
     kind = (
@@ -129,7 +129,12 @@ def check_cloud_file(path: Path) -> None:
         else "a broken or looping symlink" if path.is_symlink()
         else "a pipe, socket or device"
     )  # fmt: skip
-    raise DatasetError(f"{path}: {kind}, not a cloud file")
+    raise DatasetError(f"{path}: {kind}, not {what}")
+
+
+def check_cloud_file(path: Path) -> None:
+    """``check_regular_file`` for a point cloud."""
+    check_regular_file(path, "a cloud file")
 
 
 def read_points(path: str | os.PathLike) -> np.ndarray:
@@ -384,9 +389,11 @@ def parse_label_lines(lines: list[str], data: DataConfig, source: str) -> Object
     )
 
 
-def _read_lines(path: Path) -> list[str]:
-    """The lines of a UTF-8 text file; a leading byte-order mark (Windows editors) is not
-    part of the first line. An undecodable byte is named by its line."""
+def _read_lines(path: Path, what: str) -> list[str]:
+    """The lines of a UTF-8 text file (``what``, for errors); a leading byte-order mark
+    (Windows editors) is not part of the first line. An undecodable byte is named by its
+    line."""
+    check_regular_file(path, what)  # a pipe there hung eval and dataset check
     raw = path.read_bytes()
     try:
         text = raw.decode("utf-8-sig")
@@ -400,7 +407,7 @@ def _read_lines(path: Path) -> list[str]:
 def read_labels(path: str | os.PathLike, data: DataConfig) -> ObjectLabels:
     """Reads a ``label_2/*.txt`` file. Errors name the file and line."""
     path = Path(path)
-    return parse_label_lines(_read_lines(path), data, str(path))
+    return parse_label_lines(_read_lines(path, "a label file"), data, str(path))
 
 
 # Masks -------------------------------------------------------------------------------------
@@ -409,6 +416,7 @@ def read_labels(path: str | os.PathLike, data: DataConfig) -> ObjectLabels:
 def read_mask(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     """Reads a 16-bit instance-id PNG as int32 [H, W]; its size must equal ``shape``."""
     path = Path(path)
+    check_regular_file(path, "a PNG mask")
     try:
         # verify() checks every chunk's CRC, which loading does not: a flipped bit in the
         # image data otherwise reads as other ids, silently. It leaves the image unusable.
@@ -480,8 +488,8 @@ def read_split(root: str | os.PathLike, split: str) -> list[str]:
     if not path.exists():
         raise DatasetError(f"{path}: split file not found")
     try:
-        lines = _read_lines(path)
-    except OSError as e:  # a folder, say
+        lines = _read_lines(path, "a split file")
+    except OSError as e:  # unreadable
         raise DatasetError(f"{path}: cannot read the split file ({e.strerror})") from None
     ids, first_line = [], {}
     for n, line in enumerate(lines, 1):
