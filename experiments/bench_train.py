@@ -76,11 +76,16 @@ def bench_preset(name: str, steps: int, batch_size: int | None, sweep_k: int) ->
     for _ in range(steps):
         vmapped.append(_time(lambda: sweep(states, batch, key, hypers)))
         sequential.append(_time(lambda: [step(state, batch, key, hyper) for _ in range(sweep_k)]))
+    print(sweep_row(name, sweep_k, sweep_compile, vmapped, sequential), flush=True)
+
+
+def sweep_row(name: str, k: int, compile_s: float, vmapped, sequential) -> str:
+    """The sweep row: the medians of the rounds' seconds and the speed-up of one vmapped
+    round over K sequential steps (> 1: vmap is faster)."""
     v, s = statistics.median(vmapped), statistics.median(sequential)
-    print(
-        f"{name:6s} sweep K={sweep_k}: compile {sweep_compile:.1f} s, vmapped {1e3 * v:.0f} ms "
-        f"vs {sweep_k} sequential {1e3 * s:.0f} ms per round -> {s / v:.2f}x",
-        flush=True,
+    return (
+        f"{name:6s} sweep K={k}: compile {compile_s:.1f} s, vmapped {1e3 * v:.0f} ms "
+        f"vs {k} sequential {1e3 * s:.0f} ms per round -> {s / v:.2f}x"
     )
 
 

@@ -5,7 +5,12 @@ The suite is compile-bound: XLA's backend optimisation level 0 compiles several 
 faster and the tiny test configs run fast enough without the optimisations.
 """
 
+import contextlib
+import errno
 import os
+from pathlib import Path
+
+import pytest
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
@@ -23,3 +28,22 @@ def pytest_collection_modifyitems(items):
         return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
 
     items.sort(key=rank)  # stable: the order within a file stays as written
+
+
+@pytest.fixture
+def full_disk():
+    """A context in which ``Path.write_text`` writes 10 characters and then fails as a full
+    disk does: what an atomic write must survive with the old file whole."""
+    real_write = Path.write_text
+
+    def cut_off(self, text, *args, **kwargs):
+        real_write(self, text[:10], *args, **kwargs)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    @contextlib.contextmanager
+    def context():
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(Path, "write_text", cut_off)
+            yield
+
+    return context

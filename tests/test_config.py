@@ -105,6 +105,9 @@ def test_the_paper_preset_holds_designs_numbers():
         (lambda: BackboneConfig(mlp_ratio=math.inf), "backbone.mlp_ratio"),
         (lambda: BackboneConfig(mlp_ratio=0.0), "backbone.mlp_ratio"),
         (lambda: SimConfig(clearance=math.nan), "sim.clearance"),
+        # Open bounds: the documented [0, 1) and min_range < max_range (a mutation audit).
+        (lambda: SimConfig(dropout=1.0), "sim.dropout"),
+        (lambda: SimConfig(min_range=5.0, max_range=5.0), "sim.min_range"),
         (lambda: DataConfig(class_map=(("Desk", "Table"), ("Desk", "Chair"))), "data.class_map"),
         # Background weight 1 - alpha < 0 rewards positive background logits.
         (lambda: LossConfig(focal_alpha=1.5), "loss.focal_alpha"),
@@ -309,6 +312,28 @@ def test_refuses_zero_gt_sampling_attempts_and_a_grid_a_fraction_of_a_cell_off()
     assert 1e-3 < abs(cells - round(cells)) < 0.1  # a near miss, not a gross one
     with pytest.raises(ConfigError, match=r"config field 'grid\.x_range'.*not divisible"):
         GridConfig(cell_size=0.099)
+
+
+def test_documented_zeros_a_float_cell_count_and_steps_alone():
+    """TRAINING.md: ``train.grad_clip_norm`` 0 turns clipping off and ``train.weight_decay``
+    0 is none; a grid of 2.4 m in 0.1 m cells is 24 cells though the float quotient is
+    23.999999999999996; ``--steps`` alone caps ``train.warmup_steps`` at the new total
+    (config_from_args). Refusing the zeros, a grid one cell short and a warm-up one step
+    short each passed every test (a mutation audit)."""
+    import argparse
+
+    from indoorbev_jax.config import add_config_arguments, config_from_args, with_overrides
+
+    off = with_overrides(Config.tiny(), ["train.grad_clip_norm=0", "train.weight_decay=0"])
+    assert (off.train.grad_clip_norm, off.train.weight_decay) == (0.0, 0.0)
+    grid = GridConfig(x_range=(-1.2, 1.2), y_range=(-2.3, 2.3), cell_size=0.1)
+    assert (2.4 / 0.1, grid.shape) == (23.999999999999996, (46, 24))
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser)
+    for steps in (50, 150):  # below and above the small preset's warm-up
+        config = config_from_args(parser.parse_args(["--preset", "small", "--steps", str(steps)]))
+        want = min(steps, Config.small().train.warmup_steps)
+        assert (config.train.total_steps, config.train.warmup_steps) == (steps, want)
 
 
 def test_with_overrides_refuses_a_path_deeper_than_section_field():

@@ -167,3 +167,16 @@ def test_rasterised_boxes_on_a_grid_with_a_cell_on_the_origin(tmp_path):
     res = evaluate_folders(tmp_path / "gt", tmp_path / "pred", config)
     assert res["ap"] == {0.25: 1 - 2**-53, 0.5: 1 - 2**-53}
     assert (res["pq"], res["miou"], res["semantic_miou"]) == (1.0, 1.0, 1.0)
+
+
+def test_write_json_keeps_the_old_file_when_a_write_fails(tmp_path, full_disk):
+    """--json's write is atomic: a write that fails halfway (a full disk) leaves the last
+    metrics file whole, and no temporary file beside it."""
+    from indoorbev_jax.checks import write_json
+
+    out = tmp_path / "m.json"
+    write_json(out, {"old": 1})
+    with full_disk(), pytest.raises(OSError, match=f"cannot write {re.escape(str(out))}: No space"):
+        write_json(out, {"new": 2})
+    assert json.loads(out.read_text()) == {"old": 1}
+    assert [p.name for p in tmp_path.iterdir()] == ["m.json"]

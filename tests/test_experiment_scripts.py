@@ -57,20 +57,25 @@ def test_evaluate_sim_names_a_bad_frame_set():
 
 def test_frame_tags_put_each_edge_value_in_the_row_that_names_it():
     """Rows are named ``[a, b)``: an object with exactly a points (cells, metres) belongs to
-    the row starting at a; np.digitize(right=True) put it one row lower, unseen."""
+    the row starting at a; np.digitize(right=True) put it one row lower, unseen. An object
+    just below the first edge goes to the first row, ``<a``; the occlusion rows name the
+    simulator's visibility thresholds."""
     import types
 
     import numpy as np
+    from indoorbev_sim.labels import VISIBLE_FULL, VISIBLE_PART
 
     from indoorbev_jax import sim_eval
 
     names = {g: rows for g, rows, _ in sim_eval.BREAKDOWNS}
+    full, part = round(100 * VISIBLE_FULL), round(100 * VISIBLE_PART)
+    assert names["occlusion"][:3] == (f"0 (>={full}% seen)", f"1 ({part}-{full}%)", f"2 (<{part}%)")
     for grouping, edges in (("points", sim_eval.POINT_EDGES), ("area", sim_eval.AREA_EDGES),
                             ("range", sim_eval.RANGE_EDGES)):  # fmt: skip
-        n = len(edges)
+        n = len(edges) + 1  # the last object sits just below the first edge
         pos, masks = np.zeros((n, 3)), np.zeros((n, 8, 16), bool)
         points = np.zeros(n, int)
-        for k, edge in enumerate(edges):
+        for k, edge in enumerate([*edges, edges[0] - 1]):
             if grouping == "points":
                 points[k] = edge
             elif grouping == "area":
@@ -81,8 +86,9 @@ def test_frame_tags_put_each_edge_value_in_the_row_that_names_it():
         info = types.SimpleNamespace(variant=np.zeros(n, int), num_points=points,
                                      occlusion=np.zeros(n, int))  # fmt: skip
         rows = sim_eval.frame_tags(targets, info)[grouping]
-        for edge, row in zip(edges, rows, strict=True):
+        for edge, row in zip(edges, rows[:-1], strict=True):
             assert names[grouping][row].startswith((f"[{edge:g},", f">={edge:g}")), (edge, row)
+        assert rows[-1] == 0 and names[grouping][0].startswith(f"<{edges[0]:g}"), grouping
 
 
 def test_eval_sim_sweep_fuses_the_views_at_each_rows_mask_threshold():
@@ -441,6 +447,36 @@ def test_eval_sim_val_frames_are_not_paired_with_the_test_frames():
     assert f_val != f_test and not np.array_equal(n_val, n_test)
 
 
+def test_eval_sim_draws_its_first_batch_from_fold_in_of_the_seed(monkeypatch):
+    """The frame sets are documented (sim_eval, docs/TRAINING.md) as batch k =
+    generate_batch(fold_in(key(seed), k)); the test above reads batch 0 that way, so the
+    batches eval_sim scores must be the ones it reads. A mutation audit: keying batch k
+    with k + 1 passed every test, and every published figure would change."""
+    import jax
+    import numpy as np
+    from indoorbev_sim import generate
+
+    from indoorbev_jax import sim_eval
+
+    keys = []
+
+    class Drawn(Exception):
+        pass
+
+    def generator(config, split, batch):
+        def draw(key):
+            keys.append(key)
+            raise Drawn
+
+        return draw
+
+    monkeypatch.setattr(generate, "jitted_generate", generator)
+    with pytest.raises(Drawn):
+        sim_eval.evaluate_sim(Config.tiny(), None, "test", 4, 2, 7, progress=False)
+    want = jax.random.fold_in(jax.random.key(7), 0)
+    np.testing.assert_array_equal(jax.random.key_data(keys[0]), jax.random.key_data(want))
+
+
 @pytest.mark.parametrize(
     ("script", "argv", "message"),
     [
@@ -739,6 +775,22 @@ def test_benchmarks_refuse_to_time_a_wrong_answer():
     ok[10] = False
     with pytest.raises(SystemExit, match="ours: 11 of 100000 rays disagree with mj_multiRay"):
         lidar_bench.check_agreement("ours", ok)
+
+
+def test_benchmark_ratios_are_the_reference_over_ours_of_the_medians(capsys):
+    """The printed speed-up is the reference's median over ours (> 1: ours is faster), as
+    docs/BENCHMARKS.md reads them. Both directions of bench_train's sweep row and of
+    bench_bag_decode's ratio column printed the inverse and passed every test (a mutation
+    audit)."""
+    import re
+
+    train = _script("bench_train")
+    row = train.sweep_row("tiny", 4, 5.0, [0.1, 0.3, 0.11], [0.4, 0.41, 2.0])
+    assert row.endswith("vmapped 110 ms vs 4 sequential 410 ms per round -> 3.73x")
+    _script("bench_bag_decode").main(["--points", "3000", "--reps", "2", "--rounds", "2"])
+    n, ref_ms, ours_ms, ratio = capsys.readouterr().out.splitlines()[-1].split()
+    assert n == "3000" and re.fullmatch(r"\d+x", ratio)
+    assert int(ratio[:-1]) == pytest.approx(float(ref_ms) / float(ours_ms), rel=0.02, abs=1)
 
 
 def test_demo_scores_each_frame_against_its_own_ground_truth(tmp_path, capsys):

@@ -49,8 +49,9 @@ def probe(**env) -> dict:
 def test_off_unless_asked(monkeypatch):
     monkeypatch.delenv("INDOORBEV_RETAIN_MEMORY", raising=False)
     assert host_memory.retain_freed_memory() is False
-    monkeypatch.setenv("INDOORBEV_RETAIN_MEMORY", "0")
-    assert host_memory.retain_freed_memory() is False
+    for value in ("0", "", "false", "no", "off"):  # documented opt-in: =1, nothing else
+        monkeypatch.setenv("INDOORBEV_RETAIN_MEMORY", value)
+        assert host_memory.retain_freed_memory() is False, value
 
 
 def test_the_settings_are_one_arena_no_mmap_and_no_trim(monkeypatch):

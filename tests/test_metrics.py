@@ -910,6 +910,15 @@ def test_eval_cli_says_which_objects_have_no_cell(tmp_path, capsys):
         f"e.g. {tmp_path / 'gt/label_2/a.txt'}, the object of mask id 2" in printed  # fmt: skip
     assert "note: 1 prediction objects have no cell" in printed
     assert "the object of mask id 1" in printed
+    # The counts cover every frame, not the last one read.
+    for side in ("gt", "pred"):
+        for kind, ext in (("label_2", "txt"), ("mask_2", "png")):
+            copy = tmp_path / side / kind / f"b.{ext}"
+            copy.write_bytes((tmp_path / side / kind / f"a.{ext}").read_bytes())
+    assert main([*argv, "--preset", "tiny"]) == 0
+    printed = capsys.readouterr().out
+    assert "note: 2 ground-truth objects have no cell" in printed
+    assert "note: 2 prediction objects have no cell" in printed
     # An empty split file names itself.
     (tmp_path / "gt/val.txt").write_text("\n")
     assert main([*argv, "--preset", "tiny", "--split", "val"]) == 1

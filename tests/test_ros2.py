@@ -6,6 +6,7 @@ import dataclasses
 import math
 import os
 import queue
+import re
 import shutil
 import signal
 import struct
@@ -427,7 +428,10 @@ def test_a_writer_that_fails_to_close_is_reported_and_the_bag_left_partial(tmp_p
     for storage in ("sqlite3", "mcap"):
         rec = BagRecorder(tmp_path / storage, {"/a": POINTCLOUD2}, TS, storage)
         rec.write("/a", 2, _raw_cloud(_scan(20)))
-        with pytest.raises(RuntimeError, match=rf"{storage}: recording failed: .*No space left"):
+        said = (
+            rf"{storage}: recording failed: .*No space left.* into {re.escape(str(rec.partial))}$"
+        )
+        with pytest.raises(RuntimeError, match=said):  # names where the bag is kept
             rec.close()
         assert rec.partial.is_dir() and not (tmp_path / storage).exists()
 
@@ -661,17 +665,28 @@ def test_node_settings_fail_before_the_node_starts(monkeypatch, capsys):
 def test_shutdown_work_holds_a_second_ctrl_c(capsys):
     """Closing a recording must not be cut short by an impatient Ctrl-C: rosbags commits
     a sqlite3 bag only when it is closed."""
+    from indoorbev_jax.ros2 import runtime
     from indoorbev_jax.ros2.runtime import signals_held
 
     before = signal.getsignal(signal.SIGINT)
-    steps = []
-    with signals_held("finishing the recording"):
-        os.kill(os.getpid(), signal.SIGINT)
-        time.sleep(0.2)  # the handler runs in the main thread between bytecodes
-        steps.append("closed")
-    assert steps == ["closed"]
-    assert capsys.readouterr().err == "finishing the recording\n"
-    assert signal.getsignal(signal.SIGINT) is before
+    # As the node runs: SIGTERM interrupts as Ctrl-C does (a service manager's stop).
+    term = signal.signal(signal.SIGTERM, runtime._interrupt)
+    try:
+        steps = []
+        try:
+            with signals_held("finishing the recording"):
+                for signum in (signal.SIGINT, signal.SIGTERM):
+                    os.kill(os.getpid(), signum)
+                    time.sleep(0.2)  # the handler runs in the main thread between bytecodes
+                steps.append("closed")
+        except KeyboardInterrupt as e:  # as pytest would take it: the user's
+            pytest.fail(f"the held block was interrupted: {e!r}")
+        assert steps == ["closed"]
+        assert capsys.readouterr().err == "finishing the recording\n" * 2
+        assert signal.getsignal(signal.SIGINT) is before
+        assert signal.getsignal(signal.SIGTERM) is runtime._interrupt
+    finally:
+        signal.signal(signal.SIGTERM, term)
 
 
 def test_silence_hint_names_the_likely_qos_cause():
@@ -781,6 +796,39 @@ def test_a_ctrl_c_python_dropped_still_stops_the_command():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=120, env=env)  # fmt: skip
     assert (done.returncode, done.stdout, done.stderr) == (130, "", "probe: interrupted\n")
+
+
+def test_catch_interrupts_leaves_an_ignored_sigint_and_raises_a_ctrl_c_once(monkeypatch):
+    """A job started in the background by a non-interactive shell ignores SIGINT: the
+    terminal's Ctrl-C is not for it, and catch_interrupts keeps it so. A dropped Ctrl-C that
+    was delivered again and raised is not raised a second time by check_interrupted."""
+    import types
+
+    from indoorbev_jax import interrupts
+
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # restored after
+    saved = signal.getsignal(signal.SIGINT)
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        hook = sys.unraisablehook
+        interrupts.catch_interrupts()
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN and sys.unraisablehook is hook
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        interrupts.catch_interrupts()
+        assert signal.getsignal(signal.SIGINT) is interrupts._remember_sigint
+    finally:
+        signal.signal(signal.SIGINT, saved)
+    dropped = interrupts._quiet_dropped_interrupts(lambda unraisable: None, lambda: None)
+    dropped(types.SimpleNamespace(exc_value=KeyboardInterrupt()))
+    assert interrupts.SIGINT_DROPPED.is_set()
+    with pytest.raises(KeyboardInterrupt):  # delivered again: the handler raises it
+        interrupts._remember_sigint(signal.SIGINT, None)
+    try:
+        interrupts.check_interrupted()  # nothing is left to raise
+    except KeyboardInterrupt:
+        pytest.fail("check_interrupted raised the Ctrl-C that was raised already")
+    finally:
+        interrupts.SIGINT_SEEN.clear()
 
 
 def test_unknown_ros_args_fail_first_in_one_line(capsys):
@@ -1015,6 +1063,37 @@ def test_sim_publish_goes_on_and_reports_when_its_recording_fails(tmp_path, monk
     assert (tmp_path / "bag.partial").is_dir() and not (tmp_path / "bag").exists()
 
 
+def test_sim_publish_simulates_the_tilt_it_publishes_and_records_resolved_names(
+    monkeypatch, tmp_path
+):
+    """``--lidar-rpy`` publishes clouds as scanned at exactly that tilt: the config's
+    ``sim.sensor_tilt_jitter`` is turned off for them (else each scene would carry up to 8
+    degrees more than the frame says). ``--record`` under a namespace records the topics as
+    they resolve. A mutation audit: keeping the jitter passed, and recording under the
+    unresolved names raised KeyError, untested."""
+    import indoorbev_sim.ros2 as sim_ros2
+
+    labels, _ = _two_detections()
+    simulated = []
+
+    def frames(config, seed, split):
+        simulated.append((config.sim.sensor_rpy, config.sim.sensor_tilt_jitter))
+        while True:
+            yield _scan(5), labels
+
+    _fake_sim_node(monkeypatch, frames, namespace="/robot1")
+    jittered = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, sensor_tilt_jitter=8.0))
+    sim_ros2.publish(jittered, rate=50.0, frames=1, lidar_rpy=(0.0, 20.0, 0.0),
+                     level_frame="lidar_level")  # fmt: skip
+    assert simulated == [((0.0, 20.0, 0.0), 0.0)]
+    assert sim_ros2.publish(CFG, rate=50.0, frames=2, record=str(tmp_path / "bag"))["frames"] == 2
+    recorded = read_bag(tmp_path / "bag")
+    assert {topic: len(messages) for topic, messages in recorded.items()} == {
+        "/robot1/lidar/points": 2,
+        "/robot1/lidar/objects": 2,
+    }
+
+
 def test_header_from_cdr_reads_either_byte_order_and_refuses_nanosec_of_a_second():
     """builtin_interfaces/Time keeps ``nanosec < 10**9``: ``header_from_cdr`` reads a broken
     cloud's header only when it is a valid one, else None (its docstring), so a header of
@@ -1168,22 +1247,19 @@ def test_node_drops_stale_clouds_and_times_only_stamped_ones(monkeypatch):
     assert summary["latency_ms"]["max"] < 10_000
 
 
-def test_sim_publish_markers_live_two_frame_periods(monkeypatch):
-    """The simulator's ground-truth markers live two frame periods (docs/ROBOT.md, Topics):
-    at 20 Hz every marker of every published MarkerArray has lifetime 0.1 s, so a box
-    stays until the next frame replaces it and vanishes if the stream stops. Driven under a
-    fake rclpy node with fixed frames (no DDS, no scene generation). A mutation audit: a
-    lifetime 1000 times too short passed."""
+def _fake_sim_node(monkeypatch, frames, namespace: str = "") -> list:
+    """``indoorbev_sim.ros2.publish`` under a fake rclpy node whose topics resolve under
+    ``namespace``, with ``frames(config, seed, split)`` in place of the scene generator (no
+    DDS, no scene generation). Returns the list of (resolved topic, message) it publishes."""
     import indoorbev_sim.ros2 as sim_ros2
 
     from indoorbev_jax.ros2 import runtime
 
-    labels, _ = _two_detections()
     sent = []
 
     class Pub:
         def __init__(self, topic):
-            self.topic_name = topic
+            self.topic_name = namespace + topic
 
         def publish(self, message):
             sent.append((self.topic_name, message))
@@ -1195,18 +1271,34 @@ def test_sim_publish_markers_live_two_frame_periods(monkeypatch):
         def get_clock(self):
             return type("Clock", (), {"now": lambda s: types.SimpleNamespace(nanoseconds=7)})()
 
+        def get_logger(self):
+            return types.SimpleNamespace(error=print)
+
     context = types.SimpleNamespace(ok=lambda: True)
-
-    def frames(config, seed, split):
-        while True:
-            yield _scan(5), labels
-
     monkeypatch.setattr(sim_ros2, "scene_frames", frames)
     monkeypatch.setattr(runtime, "require_rclpy", lambda: None)
     monkeypatch.setattr(runtime, "start_node", lambda name, args: (context, Node()))
     monkeypatch.setattr(runtime, "stop_node", lambda node, context: None)
     monkeypatch.setattr(runtime, "msg_class", lambda msgtype: None)
     monkeypatch.setattr(runtime, "qos", lambda reliable, depth: None)
+    return sent
+
+
+def test_sim_publish_markers_live_two_frame_periods(monkeypatch):
+    """The simulator's ground-truth markers live two frame periods (docs/ROBOT.md, Topics):
+    at 20 Hz every marker of every published MarkerArray has lifetime 0.1 s, so a box
+    stays until the next frame replaces it and vanishes if the stream stops. Driven under a
+    fake rclpy node with fixed frames. A mutation audit: a lifetime 1000 times too short
+    passed."""
+    import indoorbev_sim.ros2 as sim_ros2
+
+    labels, _ = _two_detections()
+
+    def frames(config, seed, split):
+        while True:
+            yield _scan(5), labels
+
+    sent = _fake_sim_node(monkeypatch, frames)
     rate = 20.0
     assert sim_ros2.publish(CFG, rate=rate, frames=2)["frames"] == 2
     arrays = [TS.deserialize_cdr(m, MARKER_ARRAY) for t, m in sent if t.endswith("objects")]

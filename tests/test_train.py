@@ -128,6 +128,29 @@ def test_vmapped_sweep_equals_separate_runs(batch, step_fn):
         )
 
 
+def test_a_sweep_initialises_its_models_with_trains_init_key(tmp_path, monkeypatch):
+    """Member k of ``sweep.py --seed S`` starts from the parameters ``train.py --seed S``
+    starts from (the sweep takes train's --seed and its KEY_* constants). A mutation audit:
+    the sweep initialising from the step key passed every test."""
+    from indoorbev_jax import sweep
+
+    keys = []
+
+    class Initialised(Exception):
+        pass
+
+    def init(config, k, key):
+        keys.append(key)
+        raise Initialised
+
+    monkeypatch.setattr(sweep, "init_sweep", init)
+    cfg = dataclasses.replace(CFG, train=dataclasses.replace(CFG.train, seed=5))
+    with pytest.raises(Initialised):
+        sweep.run_sweep(cfg, tmp_path / "sw", stack_hypers(cfg, [1e-3], {}), progress=False)
+    want = jax.random.fold_in(jax.random.key(5), T.KEY_INIT)
+    np.testing.assert_array_equal(jax.random.key_data(keys[0]), jax.random.key_data(want))
+
+
 def test_sweep_refuses_a_weight_the_config_has_not():
     """``--seed-weights`` without the seed head would be ignored silently; it is named."""
     with pytest.raises(ValueError, match="--seed-weights.*seed head"):
@@ -150,7 +173,9 @@ def test_run_sweep_checks_hand_built_hypers_before_writing(tmp_path):
     short = good.replace(weights=dict(good.weights, dice=jnp.ones(1)))
     uphill = good.replace(learning_rate=jnp.array([1e-3, -1e-3]))
     missing = good.replace(weights={k: v for k, v in good.weights.items() if k != "dice"})
+    none = good.replace(learning_rate=jnp.zeros(0), weights={k: jnp.zeros(0) for k in good.weights})
     cases = (
+        (none, r"hypers\.learning_rate: expected \[K\] with K >= 1 .*got shape \(0,\)"),
         (short, r"hypers\.weights\['dice'\]: expected \[K\] .*K = 2.*got shape \(1,\)"),
         (uphill, r"hypers\.learning_rate: expected finite values >= 0, got \[0\.001.*-0\.001"),
         (missing, r"hypers\.weights: expected the keys \[.*'dice'"),
@@ -532,17 +557,32 @@ def test_a_frame_with_more_objects_than_max_objects_is_named(data, tmp_path, cap
     assert f"skipping malformed frame {crowded}" in caplog.text
 
 
+def _scalar_state(step: int) -> T.TrainState:
+    """A train state of step ``step`` whose one parameter is the step."""
+    return T.TrainState(step=jnp.int32(step), params={"w": jnp.float32(step)}, opt_state=(),
+                        skipped=jnp.int32(0))  # fmt: skip
+
+
+@pytest.mark.parametrize("keep", [1, 2])
+def test_checkpoints_keep_the_latest_keep_steps(tmp_path, keep):
+    """``train.keep_checkpoints`` steps stay, the latest among them: with one fewer, keep=1
+    kept none and a resume started again from step 0."""
+    ckpt = rundir.Checkpoints(tmp_path, keep=keep)
+    for step in (1, 2, 3, 4):
+        ckpt.save(_scalar_state(step))
+    ckpt.close()
+    kept = sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir())
+    assert kept == [*range(5 - keep, 5)]
+    restored = rundir.Checkpoints(tmp_path, keep=keep).restore(_scalar_state(0))
+    assert int(restored.step) == 4 and float(restored.params["w"]) == 4.0
+
+
 def test_a_nan_validation_score_never_replaces_a_better_best(tmp_path):
     """PQ is NaN on a validation split without objects when nothing is predicted: as a
     number it took best/ from a step with PQ 0.3 for good."""
     ckpt = rundir.Checkpoints(tmp_path, keep=2)
-
-    def state(step):
-        return T.TrainState(step=jnp.int32(step), params={"w": jnp.float32(step)}, opt_state=(),
-                            skipped=jnp.int32(0))  # fmt: skip
-
     for step, pq in ((1, 0.3), (2, float("nan")), (3, 0.1)):
-        ckpt.save_best(state(step), {"pq": pq})
+        ckpt.save_best(_scalar_state(step), {"pq": pq})
     assert ckpt.best.best_step() == 1 and ckpt.best.all_steps() == [1]
     ckpt.close()
 
@@ -682,7 +722,7 @@ def test_an_interrupted_save_is_no_checkpoint(tmp_path):
     assert rundir._has_checkpoint(tmp_path)
 
 
-def test_metrics_log_drops_a_torn_last_line_only(tmp_path, caplog):
+def test_metrics_log_drops_a_torn_last_line_only(tmp_path, caplog, full_disk):
     path = tmp_path / "metrics.jsonl"
     good = ['{"step": 5, "kind": "train", "loss": 2.0}', '{"step": 10, "kind": "train"}']
     path.write_text("\n".join(good) + '\n\n{"step": 15, "kind": "tr')  # killed mid-write
@@ -693,9 +733,15 @@ def test_metrics_log_drops_a_torn_last_line_only(tmp_path, caplog):
     assert not list(tmp_path.glob("*.tmp"))  # rewritten through a temporary file
     # The resumed run appends to the repaired log.
     log = rundir.MetricsLog(tmp_path, resume_step=10)
-    log.write(15, "train", {"loss": 1.0})
+    log.write(15, "train", {"loss": 1.0, "pq": float("nan"), "grad_norm": float("inf")})
     log.close()
-    assert [json.loads(line)["step"] for line in path.read_text().splitlines()] == [5, 10, 15]
+
+    def refuse(constant):  # json.loads reads NaN and Infinity, which JSON has not
+        raise ValueError(f"not JSON: {constant}")
+
+    records = [json.loads(line, parse_constant=refuse) for line in path.read_text().splitlines()]
+    assert [r["step"] for r in records] == [5, 10, 15]
+    assert records[-1]["pq"] is None and records[-1]["grad_norm"] is None
     # TensorBoard drops events from the resumed run's first new step on: step 10's records
     # were written before its checkpoint, and purging from 10 lost them there.
     from tensorboardX.proto import event_pb2
@@ -709,6 +755,11 @@ def test_metrics_log_drops_a_torn_last_line_only(tmp_path, caplog):
             starts.append(event.step)
         data = data[16 + n :]
     assert starts == [11]
+    # A rewrite the disk cannot finish leaves the log as it was.
+    before = path.read_text()
+    with full_disk(), pytest.raises(OSError, match=f"{re.escape(str(path))}: No space left"):
+        rundir.MetricsLog(tmp_path, resume_step=5)
+    assert path.read_text() == before and not list(tmp_path.glob(".*.tmp"))
     # A bad line with lines after it is corruption, not a torn write.
     path.write_text(good[0] + '\n{"step": 7, "ki\n' + good[1] + "\n")
     with pytest.raises(ValueError, match=f"{re.escape(str(path))}: line 2 is not a JSON object"):
@@ -790,9 +841,16 @@ def test_resume_refuses_a_changed_split_list(data, tmp_path, quick_start):
     workdir, data = tmp_path / "run", shutil.copytree(data, tmp_path / "data")
     with pytest.raises(_Stop):
         T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
-    (workdir / "checkpoints" / "3").mkdir(parents=True)  # as if step 3 were saved
     train_txt = Path(data) / "train.txt"
     ids = train_txt.read_text().split()
+    # Before any checkpoint a changed list costs nothing: the run starts again (TRAINING.md).
+    train_txt.write_text("\n".join(ids[::-1]) + "\n")
+    with pytest.raises(_Stop):
+        T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
+    train_txt.write_text("\n".join(ids) + "\n")
+    with pytest.raises(_Stop):
+        T.train_and_evaluate(CFG, workdir, data=str(data), progress=False)
+    (workdir / "checkpoints" / "3").mkdir(parents=True)  # as if step 3 were saved
     record = json.loads((workdir / "run.json").read_text())
     assert record["splits"]["train.txt"] == hashlib.sha256(train_txt.read_bytes()).hexdigest()
     train_txt.write_text("\n".join(ids[::-1]) + "\n")  # the same frames in another order
@@ -1066,8 +1124,9 @@ def test_sweep_resumes_exactly(data, tmp_path):
     config, _ = sweep.load_member(tmp_path / "ref", 1)
     assert config.train.learning_rate == 3e-3 and config.loss.yaw_weight == CFG.loss.yaw_weight
     assert (config.backbone, config.head, config.grid) == (cfg.backbone, cfg.head, cfg.grid)
-    with pytest.raises(ValueError, match=r"--member 2: the sweep in .* has members 0\.\.1"):
-        sweep.load_member(tmp_path / "ref", 2)
+    for member in (2, -1):  # -1 is not Python's last member: export_model takes any int
+        with pytest.raises(ValueError, match=rf"--member {member}: the sweep in .* members 0\.\.1"):
+            sweep.load_member(tmp_path / "ref", member)
     (killed / "hypers.json").write_text('{"learning_rate": [1e-3,')
     with pytest.raises(ValueError, match=r"killed/hypers\.json: not valid JSON"):
         sweep.load_member(killed, 0)
@@ -1260,6 +1319,13 @@ def test_train_and_sweep_refuse_each_others_workdir(data, tmp_path):
     hypers = stack_hypers(CFG, [1e-3], {})
     with pytest.raises(ValueError, match=r"holds a training run \(run\.json says 'train'\); sweep"):
         sweep.run_sweep(CFG, trained, hypers, None, progress=False)
+    # A workdir from before run.json named its kind: either file of a training run marks it.
+    for marker in ("metrics.jsonl", "best"):
+        old = tmp_path / f"old_{marker}"
+        old.mkdir()
+        (old / marker).mkdir() if marker == "best" else (old / marker).write_text("")
+        with pytest.raises(ValueError, match=rf"holds a training run \(it has {marker}\); sweep"):
+            sweep.run_sweep(CFG, old, hypers, None, progress=False)
 
 
 def test_a_checkpoint_of_another_layout_is_refused_not_deleted(tmp_path):

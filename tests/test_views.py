@@ -377,9 +377,16 @@ def test_bad_views_are_named():
     with pytest.raises(ConfigError, match=r"'mirror_x' mirrors grid\.x_range"):
         Config(grid=off_centre, inference=InferenceConfig(views=("identity", "mirror_x")))
     Config(grid=off_centre, inference=InferenceConfig(views=("identity", "mirror_y")))
+    # Off centre in y: every view that mirrors y is refused (a mutation audit: y unchecked).
+    off_y = GridConfig(x_range=(-4.0, 4.0), y_range=(-2.0, 6.0), cell_size=0.5)
+    for view in ("mirror_y", "rotate_180"):
+        with pytest.raises(ConfigError, match=rf"'{view}' mirrors grid\.y_range"):
+            Config(grid=off_y, inference=InferenceConfig(views=("identity", view)))
     oblong = GridConfig(x_range=(-4.0, 4.0), y_range=(-2.0, 2.0), cell_size=0.5)
-    with pytest.raises(ConfigError, match=r"'rotate_90' swaps x and y"):
-        Config(grid=oblong, inference=InferenceConfig(views=("rotate_90",)))
+    square_off_y = GridConfig(x_range=(-4.0, 4.0), y_range=(-6.0, 4.0), cell_size=0.5)
+    for grid in (oblong, square_off_y):  # a swap needs the grid square and y centred too
+        with pytest.raises(ConfigError, match=r"'rotate_90' swaps x and y"):
+            Config(grid=grid, inference=InferenceConfig(views=("rotate_90",)))
     assert parse_views("all") == tuple(VIEWS) and len(VIEWS) == 8
     assert parse_views("identity, mirror_y") == ("identity", "mirror_y")
     with pytest.raises(argparse.ArgumentTypeError, match="unknown view 'flip'"):

@@ -77,6 +77,9 @@ def test_heading_tick_points_along_the_yaw():
         assert outline.tolist() != [20, 20, 20]
         np.testing.assert_array_equal(img[_pixel(*along)], outline, err_msg=f"yaw {yaw}")
         np.testing.assert_array_equal(img[_pixel(*across)], [20, 20, 20], err_msg=f"yaw {yaw}")
+        # The tick ends at the box's front edge (x + 0.5 for yaw 0): beyond it, background.
+        beyond = (2.6, 3.0) if yaw == 0.0 else (2.0, 3.6)
+        np.testing.assert_array_equal(img[_pixel(*beyond)], [20, 20, 20], err_msg=f"yaw {yaw}")
 
 
 def test_height_ramp_runs_blue_green_red():
@@ -90,6 +93,10 @@ def test_height_ramp_runs_blue_green_red():
     c = viz.height_colour(z, GRID.z_range).astype(int)
     assert np.abs(c[1] - (c[0] + c[3]) / 2).max() <= 1 and np.abs(c[2] - c[3]).max() <= 1
     assert np.abs(c[4] - (c[3] + c[5]) / 2).max() <= 1, c
+    # Outside z_range the ends' colours, not a wrapped uint8 (render_bev draws such points:
+    # its on-grid test is x and y only).
+    outside = viz.height_colour(np.array([lo - 2.0, hi + 2.0]), GRID.z_range)
+    np.testing.assert_array_equal(outside, c[[0, 5]])
 
 
 def test_higher_points_are_drawn_on_top():

@@ -65,6 +65,10 @@ def test_train_compiler_options_give_dot_fusions_to_small_grids_only(monkeypatch
     assert xla_flags.train_compiler_options((128, 129)) == {}
     monkeypatch.setattr(xla_flags, "_applied", False)  # the user's flags or another jaxlib
     assert xla_flags.train_compiler_options((100, 100)) == {}
+    # CPU options only: a GPU run compiles with XLA's own (a mutation audit: passed).
+    monkeypatch.setattr(xla_flags, "_applied", True)
+    monkeypatch.setattr("jax.default_backend", lambda: "gpu")
+    assert xla_flags.train_compiler_options((100, 100)) == {}
 
 
 # A dense layer's gradient compiled with the small-grid options: YNNPACK fusions, dots only.

@@ -258,6 +258,37 @@ def test_check_dataset_reports_what_the_frames_hold(tmp_path):
     assert check_dataset(tmp_path, "train").config == Config.small()
 
 
+def test_check_dataset_statistics_span_every_frame(tmp_path):
+    """Over frames of 10, 20 and 300 valid points with intensity up to exactly 1.0: no
+    intensity warning (the model takes [0, 1]), the median of the point counts (20, the
+    mean is 110), objects beyond data.max_objects summed over the frames (2 + 2), and an
+    empty split a problem (the module docstring). A warning at intensity 1, the mean for
+    the median, the last frame's dropped objects only and an empty split passed as fine
+    each passed every test (a mutation audit)."""
+    from indoorbev_jax.data.check import check_dataset
+
+    rng = np.random.default_rng(0)
+    n = CFG.data.max_objects + 2
+    crowded = kitti.ObjectLabels(
+        classes=[k % NUM_CLASSES for k in range(n)], dims=[[0.5, 0.5, 0.5]] * n,
+        pos=[[0.4 * k - 3.0, 0.5, 0.25] for k in range(n)], yaw=[0.0] * n, occlusion=[0] * n,
+    )  # fmt: skip
+    for k, size in enumerate((10, 20, 300)):
+        points = np.c_[rng.uniform(-2, 2, (size, 2)), rng.uniform(0, 1, size),
+                       np.linspace(0.0, 1.0, size)].astype(np.float32)  # fmt: skip
+        labels = crowded if k else kitti.ObjectLabels.empty()
+        kitti.write_frame(tmp_path, f"{k:06d}", points, labels, CLASS_NAMES)
+    kitti.write_split(tmp_path, "val", [])
+    report = check_dataset(tmp_path, None, CFG)
+    assert report.valid_points == [10, 20, 300] and report.dropped_objects == 4
+    assert not [w for w in report.warnings if "intensity" in w]
+    text = report.format()
+    assert "min 10  median 20  mean 110.0  max 300" in text
+    assert "objects beyond data.max_objects: 4" in text
+    empty = check_dataset(tmp_path, "val", CFG)
+    assert not empty.ok and empty.problems[0] == f"{tmp_path}: no frames in split val"
+
+
 def test_dataset_check_names_lost_files(tmp_path, capsys):
     """A cloud whose label file is lost is no frame, and a frame without a mask where
     mask_2/ exists falls back to its boxes: both were passed over in silence. A split
@@ -332,6 +363,10 @@ def test_dataset_check_lists_max_problems_and_no_false_orphans(tmp_path, capsys)
     start = lines.index("warnings: 11; the first 10:")
     listed = [line.startswith("  ") for line in lines[start + 1 : start + 12]]
     assert listed == [True] * 10 + [False]
+    with pytest.raises(SystemExit) as refused:  # listing none would hide every warning
+        cli_main([*argv, "--max-problems", "0"])
+    assert refused.value.code == 2
+    assert "--max-problems: must be > 0, got 0" in capsys.readouterr().err
     kitti.write_split(tmp_path, "train", ["000000"])
     assert cli_main([*argv, "--split", "train"]) == 0
     out = capsys.readouterr().out
@@ -388,9 +423,11 @@ def test_eval_names_missing_ground_truth_duplicates_and_bad_json_paths(tmp_path,
     captured = capsys.readouterr()
     assert captured.err.startswith("indoorbev eval: error:") and "frames:" not in captured.out
     assert cli_main([*argv, "--split", "train", "--json", str(tmp_path)]) == 1
-    assert "is a folder, expected a file name" in capsys.readouterr().err
-    assert cli_main([*argv, "--split", "train", "--json", str(tmp_path / "m.json")]) == 0
-    assert "ap" in json.loads((tmp_path / "m.json").read_text())
+    assert f"--json {tmp_path}: is a folder, expected a file name" in capsys.readouterr().err
+    # The file's folder is made, parents included.
+    nested = tmp_path / "reports" / "2026" / "m.json"
+    assert cli_main([*argv, "--split", "train", "--json", str(nested)]) == 0
+    assert "ap" in json.loads(nested.read_text())
 
 
 def test_eval_refuses_scored_ground_truth_and_notes_extra_predictions(tmp_path, capsys):

@@ -140,3 +140,42 @@ def test_check_and_publish_defaults_and_noise_free(monkeypatch):
         assert main([*argv, "--cache", "", "--noise-free"]) == 0
         cfg = seen[argv[-1]] if argv == ["check"] else seen["publish"][0]
         assert (cfg.sim.range_noise, cfg.sim.dropout) == (0.0, 0.0), argv
+
+
+def test_a_ctrl_c_before_the_node_runs_exits_130(monkeypatch, capsys):
+    """docs/ROBOT.md: Ctrl-C during the warm-up exits with status 130 (the node's own stop,
+    later, is tested in test_ros2)."""
+    import indoorbev_sim.ros2
+
+    def warming_up(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(indoorbev_sim.ros2, "publish", warming_up)
+    assert main(["ros2", "publish", "--cache", ""]) == 130
+    assert capsys.readouterr().err == "indoorbev-sim: interrupted\n"
+
+
+def test_show_names_a_missing_frame_in_one_line(tmp_path, capsys):
+    """A frame id that is not in the dataset is an error line and status 2, no traceback."""
+    (tmp_path / "label_2").mkdir()
+    (tmp_path / "label_2" / "000000.txt").write_text("")
+    argv = ["show", str(tmp_path), "--out", str(tmp_path / "pics"), "--ids", "999999"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("indoorbev-sim: error: ") and "no frame 999999" in err
+    assert len(err.splitlines()) == 1
+
+
+def test_the_preset_read_from_an_export_is_a_preset_or_none(tmp_path):
+    """``saved_preset`` gives the preset export.json's config names, or None for a name of
+    no preset (a config built by hand), so that export and show fall back to paper and the
+    settings check names each field that differs, not "unknown preset 'mine'" (a mutation
+    audit: passing any name on passed every test)."""
+    import json
+
+    from indoorbev_sim.export import saved_preset
+
+    assert saved_preset(tmp_path) is None  # no export.json
+    for name, want in (("small", "small"), ("mine", None)):
+        (tmp_path / "export.json").write_text(json.dumps({"config": {"name": name}}))
+        assert saved_preset(tmp_path) == want

@@ -556,3 +556,52 @@ def test_the_reference_is_still_found_where_the_docs_put_it():
         assert getattr(generate, name) is getattr(reference, name)
     with pytest.raises(AttributeError, match="has no attribute 'reference_nothing'"):
         generate.reference_nothing  # noqa: B018
+
+
+def test_points_in_the_outermost_cell_ring_are_counted_as_edge():
+    """point_footprint_agreement leaves out the points in the outermost ring of cells
+    (its docstring): one point in each of the four border strips, one inside. The last
+    column left in the ring's place passed every test (a mutation audit)."""
+    grid = CFG.grid
+    h, w = grid.shape
+    cell = grid.cell_size
+    mid_x, mid_y = np.mean(grid.x_range), np.mean(grid.y_range)
+    xy = [(grid.x_range[0] + cell / 2, mid_y), (grid.x_range[1] - cell / 2, mid_y),
+          (mid_x, grid.y_range[0] + cell / 2), (mid_x, grid.y_range[1] - cell / 2),
+          (mid_x + cell / 2, mid_y + cell / 2)]  # fmt: skip
+    points = np.zeros((1, len(xy), 4), np.float32)
+    points[0, :, :2] = xy
+    mask = np.zeros((1, 1, h, w), bool)
+    mask[0, 0, h // 2, w // 2] = True  # the inside point's cell
+    targets = types.SimpleNamespace(masks=mask, valid=np.ones((1, 1), bool),
+                                    classes=np.zeros((1, 1), int))  # fmt: skip
+    batch = types.SimpleNamespace(points=points, targets=targets)
+    info = types.SimpleNamespace(point_object=np.zeros((1, len(xy)), int),
+                                 occlusion=np.zeros((1, 1), int))  # fmt: skip
+    (row,) = labels.point_footprint_agreement(batch, info, grid)
+    assert (row["edge"], row["points"], row["in_own"], row["in_other"]) == (4, 1, 1, 0)
+
+
+def test_check_counts_objects_and_frames_per_class(frames):
+    """``indoorbev-sim check``'s table: per class the labelled objects and the frames that
+    hold one, against the same frames counted here (6 frames: a whole batch of B and part of
+    the next). Counting objects for frames_with passed every test (a mutation audit)."""
+    seed, count = 3, 6
+    out = labels.check(CFG, count, B, seed)
+    gen = generate.jitted_generate(CFG, "train", B)  # check's generator: compiled already
+    objects_, frames_with = np.zeros(CFG.num_classes, int), np.zeros(CFG.num_classes, int)
+    for start in range(0, count, B):
+        batch, _ = gen(jax.random.fold_in(jax.random.key(seed), start))
+        classes, valid = np.asarray(batch.targets.classes), np.asarray(batch.targets.valid)
+        for b in range(min(B, count - start)):
+            present = classes[b][valid[b]]
+            objects_ += np.bincount(present, minlength=CFG.num_classes)
+            frames_with += np.isin(np.arange(CFG.num_classes), present)
+    lines = out.splitlines()
+    table = lines[lines.index("class       objects  frames_with") + 1 :]
+    got = {line.split()[0]: [int(v) for v in line.split()[1:]] for line in table}
+    want = {name: [int(objects_[c]), int(frames_with[c])]
+            for c, name in enumerate(CFG.data.class_names)}  # fmt: skip
+    assert got == want
+    assert (frames_with <= count).all() and (objects_ > frames_with).any()
+    assert f"labelled objects: {objects_.sum()}," in out

@@ -26,6 +26,14 @@ def sampled():
     }
 
 
+@pytest.fixture(scope="module")
+def long_sampled():
+    """64 train scenes of 20-frame (2 s) sequences: paths long enough to leave a room or
+    run into an object when their end is not checked."""
+    cfg = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, frames_per_sequence=20))
+    return jax.tree.map(np.asarray, generate.sample_scenes(jax.random.key(7), cfg, 64, False)), cfg
+
+
 def test_object_bank_every_variant_is_a_sound_object():
     bank = objects.object_bank()
     for c, spec in enumerate(objects.CLASSES):
@@ -61,14 +69,19 @@ def _rects(scene, b, time):
     return out
 
 
-def test_placement_is_collision_free_inside_the_room_over_the_sequence(sampled):
-    span = (CFG.sim.frames_per_sequence - 1) * CFG.sim.frame_dt
+def test_placement_is_collision_free_inside_the_room_over_the_sequence(sampled, long_sampled):
+    """No two objects, nor an object and the lidar robot, come closer than the clearance in
+    any frame: on the default 2-frame sequences and at each frame of 2 s ones (the lidar
+    robot's reserved path ending at its start passed the 2-frame check: a mutation audit)."""
+    long_scenes, long_cfg = long_sampled
+    cases = [(scene, CFG) for scene in sampled.values()] + [(long_scenes, long_cfg)]
     placed = 0
-    for scene in sampled.values():
-        for b in range(NUM):
+    for scene, cfg in cases:
+        times = np.arange(cfg.sim.frames_per_sequence) * cfg.sim.frame_dt
+        for b in range(len(scene.on)):
             hx, hy = scene.room.size[b] / 2
             room = shapely.box(-hx, -hy, hx, hy)
-            for time in (0.0, span / 2, span):
+            for time in times:
                 rects = _rects(scene, b, time)
                 ego = shapely.Point(scene.ego[b, :2] + scene.ego_velocity[b] * time)
                 for s, r in rects.items():
@@ -96,6 +109,14 @@ def test_splits_hold_out_plans_and_variants(sampled):
     assert not set(scenes.allowed_plans(CFG.sim, "train").tolist()) & held
     assert not scenes.allowed_variants(CFG.sim, "val")[trolley]
     assert scenes.allowed_variants(CFG.sim, "test")[trolley]
+    # No split allows a variant index past its class's variants (it would name another
+    # class's variant in variant_ids), and no scene draws one.
+    counts = np.array([len(c.variants) for c in objects.CLASSES])
+    past = np.arange(scenes.allowed_variants(CFG.sim, "train").shape[1]) >= counts[:, None]
+    for split in ("train", "val", "test"):
+        assert not scenes.allowed_variants(CFG.sim, split)[past].any(), split
+    for scene in sampled.values():
+        assert (scene.variant < counts[tpl.slot_class]).all()
 
 
 def test_a_test_split_without_held_out_plans_is_said():
@@ -273,6 +294,30 @@ def test_labelled_dims_are_the_tight_box_of_the_rescaled_primitives(sampled):
             np.testing.assert_allclose([lo[0] + hi[0], lo[1] + hi[1], lo[2]], 0, atol=2e-5)
             checked += scene.on[b, s]
     assert checked > NUM
+
+
+def test_bank_objects_are_rescaled_by_up_to_5_percent_either_way(sampled):
+    """SIMULATOR.md: the generator gathers a bank instance and rescales it by up to +-5 %.
+    Each slot's dims are one bank instance of its class and variant times one factor: read
+    where exactly one instance has three equal ratios (a person's instances are all scaled
+    copies of one); the factors fill both sides of 1. A jitter of +0..5 % only passed every
+    test (a mutation audit)."""
+    assert scenes.OBJECT_SCALE_JITTER == 0.05
+    bank = objects.object_bank(CFG.sim.bank_per_variant)
+    tpl = scenes.template_for(CFG)
+    factors = []
+    for scene in sampled.values():
+        for b, s in np.ndindex(*scene.on.shape):
+            ref = np.asarray(bank.dims[tpl.slot_class[s], scene.variant[b, s]])  # [K, 3]
+            ratio = scene.prims.dims[b, s] / ref
+            uniform = np.ptp(ratio, axis=1) < 1e-4
+            assert uniform.any(), (b, s)
+            if uniform.sum() == 1:
+                factors.append(ratio[uniform][0, 0])
+    factors = np.asarray(factors)
+    assert len(factors) > 50
+    assert factors.min() >= 0.95 - 1e-5 and factors.max() <= 1.05 + 1e-5
+    assert factors.min() < 0.97 and factors.max() > 1.03
 
 
 def test_primitive_half_extents_are_reached_by_mujoco_rays():
@@ -461,16 +506,19 @@ def test_door_gaps_lie_inside_their_walls_and_follow_door_prob():
 
 
 def test_room_size_x_and_y_are_independent_draws():
-    """Each plan's size_x and size_y are drawn independently in their ranges: over 256
-    plans their normalised positions in the ranges are uncorrelated and never equal (one
-    draw for both, a mutation audit, passed the range tests)."""
+    """Each plan's size_x, size_y and ceiling are drawn independently in their ranges: over
+    256 plans their normalised positions in the ranges are uncorrelated and never equal (one
+    draw for two of them, a mutation audit, passed the range tests)."""
     rooms, kinds = _all_rooms(64)
     fx = np.array([(s[0] - k.size_x[0]) / (k.size_x[1] - k.size_x[0])
                    for s, k in zip(rooms.size, kinds, strict=True)])  # fmt: skip
     fy = np.array([(s[1] - k.size_y[0]) / (k.size_y[1] - k.size_y[0])
                    for s, k in zip(rooms.size, kinds, strict=True)])  # fmt: skip
-    assert not np.isclose(fx, fy, atol=1e-5).any()
-    assert abs(np.corrcoef(fx, fy)[0, 1]) < 0.3
+    fc = np.array([(c - k.ceiling[0]) / (k.ceiling[1] - k.ceiling[0])
+                   for c, k in zip(rooms.ceiling, kinds, strict=True)])  # fmt: skip
+    for a, b in ((fx, fy), (fx, fc), (fy, fc)):  # the ceiling is a draw of its own too
+        assert not np.isclose(a, b, atol=1e-5).any()
+        assert abs(np.corrcoef(a, b)[0, 1]) < 0.3
 
 
 def test_bank_objects_follow_the_documented_sizes_and_facing():
@@ -502,6 +550,13 @@ def test_bank_objects_follow_the_documented_sizes_and_facing():
     bookshelf = objects.CLASSES[shelf].variants.index("bookshelf")
     assert objects.CLASSES[shelf].prims[2] == "box"
     assert (bank.pos[shelf, bookshelf, :, 2, 1] < 0).all()
+    # A robot drives along its x (scenes.py: velocity (cos yaw, sin yaw) x speed): the boxy
+    # robot's wheels (prims 5, 6) turn about y. One wheel turned by 90 degrees passed.
+    robot = objects.CLASS_INDEX["Robot"]
+    boxy = objects.CLASSES[robot].variants.index("boxy")
+    assert objects.CLASSES[robot].prims[5:] == ("hcyl", "hcyl")
+    wheels = objects.prim_axis(bank.yaw[robot, boxy, :, 5:7], bank.pitch[robot, boxy, :, 5:7], np)
+    np.testing.assert_allclose(np.abs(wheels[..., 1]), 1.0, atol=1e-6)
 
 
 def test_door_widths_are_in_the_documented_range():
@@ -540,7 +595,7 @@ def test_scenes_place_at_most_the_class_counts_and_turn_their_backs_to_walls(sam
     tpl = scenes.template_for(CFG)
     slots = CFG.sim.slots_per_class
     lo_gap, hi_gap = scenes.WALL_GAP
-    at_wall = 0
+    at_wall, walls = 0, set()
     for scene in sampled.values():
         for b in range(NUM):
             kind = layouts.LAYOUTS[int(scene.room.kind[b])]
@@ -564,23 +619,22 @@ def test_scenes_place_at_most_the_class_counts_and_turn_their_backs_to_walls(sam
                 if gaps[k] > hi_gap + 0.005:
                     continue
                 at_wall += 1
+                walls.add(k)
                 assert gaps[k] >= lo_gap - 0.005, (b, s, gaps)
                 normal = np.array([[0, -1], [0, 1], [-1, 0], [1, 0]][k])
                 assert back @ normal > 0.999, (b, s, yaw, k)
     assert at_wall > 10
+    assert walls == {0, 1, 2, 3}  # -y, +y, -x, +x: each wall gets objects
 
 
-def test_the_lidar_robot_keeps_its_wall_margin_over_the_sequence(sampled):
+def test_the_lidar_robot_keeps_its_wall_margin_over_the_sequence(sampled, long_sampled):
     """The lidar robot drives "a straight path inside the room" (scenes.py), its centre at
     least 0.6 m from every wall at the first and at the last frame (the margin scenes.py
     draws the start in and checks the end against). Checked on the default 2-frame
     sequences and on 20-frame ones (2 s, where a path not checked at its end leaves the
     room). A start drawn over the whole room,
     and an end never checked, each passed every test (a mutation audit)."""
-    long_cfg = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, frames_per_sequence=20))
-    long_scenes = jax.tree.map(
-        np.asarray, generate.sample_scenes(jax.random.key(7), long_cfg, 64, False)
-    )
+    long_scenes, long_cfg = long_sampled
     cases = [(s, CFG) for s in sampled.values()] + [(long_scenes, long_cfg)]
     for scene, cfg in cases:
         span = (cfg.sim.frames_per_sequence - 1) * cfg.sim.frame_dt
