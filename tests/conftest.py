@@ -47,3 +47,31 @@ def full_disk():
             yield
 
     return context
+
+
+@pytest.fixture
+def errors_without_blocking():
+    """``run(reads)``: {name: the exception ``reads[name]()`` raised, or None}, the reads
+    made in a daemon thread, so that one that blocks (a pipe opened for reading waits for
+    a writer forever) fails the test after ``timeout`` seconds instead of hanging the
+    suite."""
+    import threading
+
+    def run(reads: dict, timeout: float = 30.0) -> dict:
+        errors = {}
+
+        def read_all():
+            for name, read in reads.items():
+                try:
+                    read()
+                    errors[name] = None
+                except Exception as e:  # noqa: BLE001 - the test checks what was raised
+                    errors[name] = e
+
+        reading = threading.Thread(target=read_all, daemon=True)
+        reading.start()
+        reading.join(timeout)
+        assert not reading.is_alive(), f"a read blocked: {sorted(set(reads) - set(errors))}"
+        return errors
+
+    return run

@@ -186,6 +186,12 @@ def test_npy_arrays_and_structured_arrays(tmp_path):
             clouds.read_cloud(tmp_path / f"{name}.npy")
         said = f"{tmp_path / name}.npy: field 'z' is {np.dtype([('z', field)])['z']}, expected one"
         assert str(refused.value).startswith(said)
+    # Fields that are not read may be anything: a text "i" beside the intensity read.
+    extra = np.zeros(5, [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"),
+                         ("i", "U4")])  # fmt: skip
+    extra["intensity"] = 0.5
+    np.save(tmp_path / "extra.npy", extra)
+    np.testing.assert_array_equal(clouds.read_cloud(tmp_path / "extra.npy")[:, 3], 0.5)
 
 
 def test_an_npy_header_larger_than_its_file_is_refused_before_loading(tmp_path):
@@ -373,12 +379,14 @@ def test_trailing_bytes_headers_without_height_and_upper_case_suffixes(tmp_path)
         np.testing.assert_array_equal(clouds.read_cloud(tmp_path / f"SCAN.{suffix}"), POINTS)
 
 
-def test_readers_name_what_is_no_cloud_file_and_never_block_on_a_pipe(tmp_path):
+def test_readers_name_what_is_no_cloud_file_and_never_block_on_a_pipe(
+    tmp_path, errors_without_blocking
+):
     """read_cloud / read_points / read_pcd / read_npy called directly (not through predict's
     listing) on a pipe blocked forever in open(); a folder or a dangling symlink gave
     IsADirectoryError / FileNotFoundError without saying what the path is."""
+    import functools
     import os
-    import threading
 
     os.mkfifo(tmp_path / "scan.npy")
     (tmp_path / "scan.pcd").mkdir()
@@ -386,20 +394,11 @@ def test_readers_name_what_is_no_cloud_file_and_never_block_on_a_pipe(tmp_path):
     kinds = {"npy": "a pipe, socket or device", "pcd": "a folder",
              "bin": "a broken or looping symlink"}  # fmt: skip
     readers = {"npy": clouds.read_npy, "pcd": clouds.read_pcd, "bin": kitti.read_points}
-    errors = {}
-
-    def read_all():
-        for ext in kinds:
-            for read in (clouds.read_cloud, readers[ext]):
-                try:
-                    read(tmp_path / f"scan.{ext}")
-                except Exception as e:  # noqa: BLE001 - the test checks what was raised
-                    errors[ext, read.__name__] = e
-
-    reading = threading.Thread(target=read_all, daemon=True)
-    reading.start()
-    reading.join(timeout=30)
-    assert not reading.is_alive(), "a read blocked"
+    errors = errors_without_blocking({
+        (ext, read.__name__): functools.partial(read, tmp_path / f"scan.{ext}")
+        for ext in kinds
+        for read in (clouds.read_cloud, readers[ext])
+    })  # fmt: skip
     assert len(errors) == 6
     for (ext, _), e in errors.items():
         assert isinstance(e, kitti.DatasetError)

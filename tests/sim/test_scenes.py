@@ -616,7 +616,7 @@ def test_scenes_place_at_most_the_class_counts_and_turn_their_backs_to_walls(sam
                 mid = np.array([x, y]) + back * width / 2
                 gaps = [mid[1] + hy, hy - mid[1], mid[0] + hx, hx - mid[0]]
                 k = int(np.argmin(gaps))
-                if gaps[k] > hi_gap + 0.005:
+                if gaps[k] > hi_gap + 0.005 or not square:  # a free object near a wall
                     continue
                 at_wall += 1
                 walls.add(k)

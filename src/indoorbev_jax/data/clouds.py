@@ -85,14 +85,16 @@ def read_npy(path: str | os.PathLike) -> np.ndarray:
     except (ValueError, OSError, EOFError) as e:
         raise DatasetError(f"{path}: not a readable .npy array ({e})") from e
     if arr.dtype.names:  # structured: fields by name
-        for name in ("x", "y", "z", *INTENSITY_NAMES):
+        names = list(arr.dtype.names)
+        read = ("x", "y", "z", next((n for n in INTENSITY_NAMES if n in names), None))
+        for name in read:  # the fields _columns reads
             field = arr.dtype.fields.get(name, (None,))[0]
             # Text failed with numpy's bare message, complex lost its imaginary part.
             if field is not None and (field.shape or field.kind not in "fiu"):
                 raise DatasetError(
                     f"{path}: field {name!r} is {field}, expected one integer or float per point"
                 )
-        return _columns(path, list(arr.dtype.names), lambda n: arr[n].reshape(-1))
+        return _columns(path, names, lambda n: arr[n].reshape(-1))
     try:
         return as_points(arr, str(path))
     except ValueError as e:
