@@ -136,16 +136,13 @@ def test_a_sweep_initialises_its_models_with_trains_init_key(tmp_path, monkeypat
 
     keys = []
 
-    class Initialised(Exception):
-        pass
-
     def init(config, k, key):
         keys.append(key)
-        raise Initialised
+        raise _Stop
 
     monkeypatch.setattr(sweep, "init_sweep", init)
     cfg = dataclasses.replace(CFG, train=dataclasses.replace(CFG.train, seed=5))
-    with pytest.raises(Initialised):
+    with pytest.raises(_Stop):
         sweep.run_sweep(cfg, tmp_path / "sw", stack_hypers(cfg, [1e-3], {}), progress=False)
     want = jax.random.fold_in(jax.random.key(5), T.KEY_INIT)
     np.testing.assert_array_equal(jax.random.key_data(keys[0]), jax.random.key_data(want))
@@ -588,7 +585,8 @@ def test_a_nan_validation_score_never_replaces_a_better_best(tmp_path):
 
 
 class _Stop(Exception):
-    """Raised by the first train step of ``quick_start``: the start's checks have run."""
+    """Raised by a spy once what a test checks has run: the first train step of
+    ``quick_start`` (the start's checks have run), or a function whose key a test reads."""
 
 
 _INITS: dict = {}

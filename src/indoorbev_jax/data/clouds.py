@@ -54,13 +54,18 @@ def read_cloud(path: str | os.PathLike) -> np.ndarray:
     raise DatasetError(f"{path}: expected a {', '.join(SUFFIXES)} point cloud file")
 
 
+def _intensity_name(names: list[str]) -> str | None:
+    """The field read as intensity: the first of ``INTENSITY_NAMES`` in ``names``."""
+    return next((n for n in INTENSITY_NAMES if n in names), None)
+
+
 def _columns(path: Path, names: list[str], get) -> np.ndarray:
     """Stacks x, y, z and the first intensity-like field (0 when none) as float32 [N, 4]."""
     missing = [n for n in "xyz" if n not in names]
     if missing:
         raise DatasetError(f"{path}: no field(s) {missing} (x, y, z needed); it has {names}")
     xyz = [np.asarray(get(n), np.float32) for n in "xyz"]
-    name_i = next((n for n in INTENSITY_NAMES if n in names), None)
+    name_i = _intensity_name(names)
     intensity = np.asarray(get(name_i), np.float32) if name_i else np.zeros_like(xyz[0])
     return np.stack([*xyz, intensity], axis=1)
 
@@ -69,25 +74,14 @@ def read_npy(path: str | os.PathLike) -> np.ndarray:
     """float32 [N, 4] from a ``.npy`` array (see the module docstring)."""
     path = Path(path)
     check_cloud_file(path)
-    try:
-        with open(path, "rb") as f:
-            magic = f.read(6)
-    except OSError as e:
-        raise DatasetError(f"{path}: not a readable .npy array ({e})") from e
-    if magic != b"\x93NUMPY":  # np.load would call text "pickled data" and an .npz a dict
-        what = "an .npz archive" if magic.startswith(b"PK") else "no .npy file"
-        raise DatasetError(
-            f"{path}: {what} (no NUMPY header); expected one array saved with np.save"
-        )
-    _check_npy_size(path)
+    _check_npy_header(path)
     try:
         arr = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as e:
         raise DatasetError(f"{path}: not a readable .npy array ({e})") from e
     if arr.dtype.names:  # structured: fields by name
         names = list(arr.dtype.names)
-        read = ("x", "y", "z", next((n for n in INTENSITY_NAMES if n in names), None))
-        for name in read:  # the fields _columns reads
+        for name in ("x", "y", "z", _intensity_name(names)):  # the fields _columns reads
             field = arr.dtype.fields.get(name, (None,))[0]
             # Text failed with numpy's bare message, complex lost its imaginary part.
             if field is not None and (field.shape or field.kind not in "fiu"):
@@ -101,22 +95,33 @@ def read_npy(path: str | os.PathLike) -> np.ndarray:
         raise DatasetError(str(e)) from e
 
 
-def _check_npy_size(path: Path) -> None:
-    """Refuses a ``.npy`` whose header asks for more bytes than the file holds before
-    ``np.load`` allocates them: a header's shape of 10**11 points stopped a whole predict
-    run with a MemoryError that named no file."""
+def _check_npy_header(path: Path) -> None:
+    """Refuses what ``np.load`` would misread: a file without the NUMPY header (it called
+    text "pickled data" and an .npz a dict), and a header asking for more bytes than the
+    file holds, before they are allocated (a header's shape of 10**11 points stopped a whole
+    predict run with a MemoryError that named no file)."""
     try:
         with open(path, "rb") as f:
-            version = np.lib.format.read_magic(f)
-            read_header = (
-                np.lib.format.read_array_header_1_0
-                if version == (1, 0)
-                else np.lib.format.read_array_header_2_0
-            )
-            shape, _, dtype = read_header(f)
-            have = path.stat().st_size - f.tell()
+            magic = f.read(6)
+            header = None
+            if magic == b"\x93NUMPY":
+                f.seek(0)
+                version = np.lib.format.read_magic(f)
+                read_header = (
+                    np.lib.format.read_array_header_1_0
+                    if version == (1, 0)
+                    else np.lib.format.read_array_header_2_0
+                )
+                shape, _, dtype = read_header(f)
+                header = shape, dtype, os.fstat(f.fileno()).st_size - f.tell()
     except (ValueError, OSError, EOFError) as e:
         raise DatasetError(f"{path}: not a readable .npy array ({e})") from e
+    if header is None:
+        what = "an .npz archive" if magic.startswith(b"PK") else "no .npy file"
+        raise DatasetError(
+            f"{path}: {what} (no NUMPY header); expected one array saved with np.save"
+        )
+    shape, dtype, have = header
     if dtype.hasobject:  # pickled objects: np.load refuses them, named
         return
     need = int(np.prod(shape, dtype=object)) * dtype.itemsize
