@@ -252,7 +252,8 @@ def _file_frames(paths: list[Path]) -> Iterator[Frame]:
             yield Frame(path.stem, read_cloud(path))
         except (ValueError, OSError) as e:  # DatasetError, or an unreadable file
             yield Frame(path.stem, None, error=e)
-        except MemoryError:  # the machine's trouble, not the file's
+        except MemoryError as e:  # the machine's trouble, not the file's: stop, naming it
+            e.add_note(f"while reading {path}")
             raise
         except Exception as e:  # a damage no check foresaw: still one bad frame, named
             error = kitti.DatasetError(f"{path}: unreadable ({type(e).__name__}: {e})")

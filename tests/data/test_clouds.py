@@ -312,7 +312,8 @@ def test_channels_first_npy_of_any_readable_width_is_named(tmp_path, channels):
 
 def test_a_bad_file_in_a_folder_is_a_bad_frame_not_a_stop(tmp_path, monkeypatch):
     """Any ValueError of a reader is that frame's error (--skip-bad-frames goes on), not the
-    end of the run: an empty binary .pcd raised numpy's own before it was caught."""
+    end of the run: an empty binary .pcd raised numpy's own before it was caught. A
+    MemoryError stops the run, with a note naming the file it was reading."""
     np.save(tmp_path / "a.npy", POINTS)
     np.save(tmp_path / "b.npy", POINTS)
     read = clouds.read_cloud
@@ -337,8 +338,9 @@ def test_a_bad_file_in_a_folder_is_a_bad_frame_not_a_stop(tmp_path, monkeypatch)
         raise MemoryError
 
     monkeypatch.setattr(P, "read_cloud", no_memory)  # the machine's trouble: it stops the run
-    with pytest.raises(MemoryError):
+    with pytest.raises(MemoryError) as stopped:
         list(P.open_input(tmp_path)[1])
+    assert stopped.value.__notes__ == [f"while reading {tmp_path / 'a.npy'}"]
 
 
 @pytest.mark.parametrize("data", ["binary", "ascii"])
