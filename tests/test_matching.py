@@ -79,6 +79,13 @@ def test_large_costs_are_not_clipped_into_ties():
     np.testing.assert_array_equal(np.asarray(_match(big, jnp.ones((1, 2), bool))[0]), [[1, 0]])
 
 
+def test_python_lists_are_matched_as_arrays():
+    """Nested lists, as a test written from the issue might pass them (read .ndim first)."""
+    query_idx, target_idx = match([[[1.0, 0.0, 5.0], [0.0, 1.0, 5.0]]], [[True, True, False]])
+    np.testing.assert_array_equal(np.asarray(query_idx)[:, :2], [[1, 0]])
+    np.testing.assert_array_equal(np.asarray(target_idx), [[0, 1, 2]])
+
+
 def test_no_targets_gives_empty_indices():
     query_idx, target_idx = _match(jnp.zeros((2, 5, 0)), jnp.zeros((2, 0), bool))
     assert query_idx.shape == target_idx.shape == (2, 0)

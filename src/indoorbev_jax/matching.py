@@ -135,6 +135,7 @@ def match(cost: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
     Raises:
       ValueError: when shapes disagree.
     """
+    cost, valid = jnp.asarray(cost), jnp.asarray(valid)  # nested lists too
     if cost.ndim != 3:
         raise ValueError(f"match: cost must be [B, Q, M], got shape {cost.shape}")
     b, q, m = cost.shape

@@ -66,6 +66,15 @@ def test_edges_on_cell_centres_count_as_inside():
     assert ref.sum() == 3 * 5  # x centres -0.125, 0.125, 0.375; y centres -0.375..0.625
 
 
+def test_python_lists_rasterize_as_arrays_do():
+    """The issue's call with plain lists (read .shape before converting them, it raised)."""
+    box = [[0.125, 0.125, 0.5, 1.0, 0.0]]
+    ids, masks = rasterize_boxes(box, [True], GRID)
+    ref = reference_mask(np.array(box[0]), GRID)
+    np.testing.assert_array_equal(np.asarray(masks[0]), ref)
+    np.testing.assert_array_equal(np.asarray(ids), ref.astype(np.int32))
+
+
 def test_invalid_boxes_and_outside_boxes_are_empty():
     boxes = jnp.array([[0.0, 0.0, 1.0, 1.0, 0.0], [20.0, 0.0, 1.0, 1.0, 0.3]])
     ids, masks = rasterize(boxes, jnp.array([False, True]), GRID)

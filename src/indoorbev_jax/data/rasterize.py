@@ -92,7 +92,7 @@ def rasterize_boxes(
       instance_ids: int32 [H, W], 0 = empty, k + 1 = box k (overlaps: fewest cells wins).
       masks: bool [N, H, W]; invalid boxes give all-False masks.
     """
-    valid = jnp.asarray(valid, bool)
+    boxes, valid = jnp.asarray(boxes), jnp.asarray(valid, bool)  # lists too
     if valid.shape != boxes.shape[:1]:
         raise ValueError(f"valid: expected shape {boxes.shape[:1]}, got {valid.shape}")
     masks = box_masks(boxes, grid) & valid[:, None, None]
