@@ -10,6 +10,20 @@ from indoorbev_jax.config import Config
 REPO = Path(__file__).resolve().parents[1]
 
 
+def _params(config: Config, fill=lambda shape: 0.0):
+    """A parameter tree of ``config``'s network (what a model file must hold), each array
+    ``fill(shape)`` as float32: no network is initialised."""
+    import jax
+    import numpy as np
+
+    from indoorbev_jax.predict import param_shapes
+
+    shapes = param_shapes(config)
+    return jax.tree.map(
+        lambda s: np.broadcast_to(fill(s.shape), s.shape).astype(np.float32), shapes
+    )
+
+
 def _script(name: str):
     spec = importlib.util.spec_from_file_location(name, REPO / "experiments" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
@@ -118,7 +132,6 @@ def test_eval_sim_sweep_fuses_the_views_at_each_rows_mask_threshold():
 
 
 def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, capsys):
-    import numpy as np
 
     from indoorbev_jax.predict import export_model
 
@@ -128,8 +141,8 @@ def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, caps
         eval_sim.main(["--model", str(missing)])
     assert exit_info.value.code == 2
     assert f"{missing}: no such model file" in capsys.readouterr().err
-    # The threshold is checked before the parameters are used, so any tree will do.
-    path = export_model({"params": {"w": np.zeros(1)}}, Config.tiny(), tmp_path / "m.msgpack")
+    # The threshold is checked before the parameters are used: zeros will do.
+    path = export_model(_params(Config.tiny()), Config.tiny(), tmp_path / "m.msgpack")
     for bad in ("2", "nan"):
         with pytest.raises(SystemExit) as exit_info:
             eval_sim.main(["--model", str(path), "--score-threshold", bad])
@@ -161,12 +174,13 @@ def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, caps
 
 
 def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tmp_path, capsys):
+    import jax
     import numpy as np
 
     from indoorbev_jax.predict import load_model
 
     export = _script("export_model")
-    params = {"params": {"w": np.arange(3, dtype=np.float32)}}
+    params = _params(Config.tiny(), lambda shape: np.arange(shape[-1]))
     loaded = []
     export.load_params = lambda run, which: loaded.append(which) or (Config.tiny(), params)
     run = tmp_path / "run"
@@ -183,7 +197,7 @@ def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tm
     assert set(loaded) == {"best"}  # without --which: the best one (docs/TRAINING.md)
     assert (config.inference.score_threshold, config.inference.mask_threshold) == (0.3, 0.4)
     assert config.inference.views == ("identity",)
-    np.testing.assert_array_equal(back["params"]["w"], params["params"]["w"])
+    jax.tree.map(np.testing.assert_array_equal, back, params)
     # A model file in: the same parameters out with other settings, the rest kept.
     views = tmp_path / "views.msgpack"
     with pytest.raises(SystemExit) as exit_info:
@@ -198,7 +212,7 @@ def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tm
     config, again = load_model(views)
     assert config.inference.views == ("identity", "rotate_90")
     assert config.inference.score_threshold == 0.3
-    np.testing.assert_array_equal(again["params"]["w"], params["params"]["w"])
+    jax.tree.map(np.testing.assert_array_equal, again, params)
 
 
 def test_eval_sim_sweep_equals_one_evaluation_per_setting(tmp_path, capsys):
@@ -303,23 +317,23 @@ def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
     import dataclasses
     import re
 
+    import jax
     import numpy as np
 
     from indoorbev_jax.predict import average_models, export_model, load_model
 
     rng = np.random.default_rng(0)
-    trees = [
-        {"params": {"a": rng.normal(size=(3, 2)).astype(np.float32), "b": rng.normal(size=4)}}
-        for _ in range(3)
-    ]
     tiny = Config.tiny()
+    trees = [_params(tiny, lambda shape: rng.normal(size=shape)) for _ in range(3)]
     paths = [export_model(t, tiny, tmp_path / f"m{k}.msgpack") for k, t in enumerate(trees)]
     config, mean = average_models(paths)
     assert config == tiny
-    for name in ("a", "b"):
-        expected = np.mean([t["params"][name].astype(np.float64) for t in trees], axis=0)
-        assert mean["params"][name].dtype == trees[0]["params"][name].dtype
-        np.testing.assert_allclose(mean["params"][name], expected, rtol=1e-6)
+
+    def check_mean(got, *leaves):
+        assert got.dtype == leaves[0].dtype
+        np.testing.assert_allclose(got, np.mean(np.float64(leaves), axis=0), rtol=1e-5)
+
+    jax.tree.map(check_mean, mean, *trees)
 
     # The script writes the same average with the thresholds it is given.
     script = _script("average_models")
@@ -327,7 +341,7 @@ def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
     script.main([*map(str, paths), "--out", str(out), "--score-threshold", "0.3"])
     back_config, back = load_model(out)
     assert back_config.inference.score_threshold == 0.3
-    np.testing.assert_array_equal(back["params"]["a"], mean["params"]["a"])
+    jax.tree.map(np.testing.assert_array_equal, back, mean)
 
     # A model of another grid, another shape or another structure is named, nothing written.
     other_grid = dataclasses.replace(tiny, grid=dataclasses.replace(tiny.grid, cell_size=0.2))
@@ -336,11 +350,9 @@ def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
         ValueError, match=rf"{re.escape(str(bad_grid))}: grid\.cell_size = 0\.2, but"
     ):
         average_models([paths[0], bad_grid])
-    wide = {"params": {"a": np.zeros((3, 3), np.float32), "b": np.zeros(4)}}
+    wide = jax.tree.map(lambda x: np.zeros((*x.shape, 2), x.dtype), trees[1])
     bad_shape = export_model(wide, tiny, tmp_path / "wide.msgpack")
-    with pytest.raises(
-        ValueError, match=rf"{re.escape(str(bad_shape))}: parameter .*'a'.* has shape \(3, 3\)"
-    ):
+    with pytest.raises(ValueError, match=rf"{re.escape(str(bad_shape))}: parameter .* has shape "):
         average_models([paths[0], bad_shape])
 
     # The average was trained on every model's lidar heights; one tilt only.
@@ -362,8 +374,8 @@ def test_average_models_is_the_mean_and_names_what_differs(tmp_path, capsys):
     script.main([str(paths[0]), str(tilted), "--out", str(both), "--sensor-rpy", "0,10,0"])
     assert load_model(both)[0].sim.sensor_rpy == (0.0, 10.0, 0.0)
     assert "lidar heights 0.35-0.8 m" in capsys.readouterr().out
-    fewer = export_model({"params": {"a": trees[0]["params"]["a"]}}, tiny, tmp_path / "f.msgpack")
-    with pytest.raises(ValueError, match=rf"{re.escape(str(fewer))}: no parameter .*'b'"):
+    fewer = export_model({"params": {"head": trees[0]["params"]["head"]}}, tiny, tmp_path / "f")
+    with pytest.raises(ValueError, match=rf"{re.escape(str(fewer))}: parameter .* is missing"):
         average_models([paths[0], fewer])
     with pytest.raises(SystemExit) as exit_info:
         script.main([str(paths[0]), "--out", str(tmp_path / "one.msgpack")])
@@ -642,15 +654,13 @@ def test_eval_sim_simulates_the_mount_it_is_given(tmp_path, monkeypatch):
     without them the model's own ``sim`` mount is simulated."""
     import dataclasses
 
-    import numpy as np
-
     from indoorbev_jax.predict import export_model
 
     eval_sim = _script("eval_sim")
     tiny = Config.tiny()
     trained = dataclasses.replace(tiny.sim, sensor_rpy=(0.0, 10.0, 0.0), sensor_tilt_jitter=5.0)
-    params = {"params": {"w": np.zeros(2, np.float32)}}
-    model = str(export_model(params, dataclasses.replace(tiny, sim=trained), tmp_path / "m"))
+    trained_config = dataclasses.replace(tiny, sim=trained)
+    model = str(export_model(_params(trained_config), trained_config, tmp_path / "m"))
     simulated = []
 
     def capture(config, *args, **kwargs):
@@ -876,15 +886,13 @@ def test_eval_sim_scores_the_split_and_seed_it_is_given(tmp_path, monkeypatch, c
     import json
 
     import indoorbev_sim.generate
-    import numpy as np
 
     from indoorbev_jax.config import InferenceConfig
     from indoorbev_jax.metrics import Evaluator
     from indoorbev_jax.predict import export_model
 
     eval_sim = _script("eval_sim")
-    params = {"params": {"w": np.zeros(2, np.float32)}}
-    model = str(export_model(params, Config.tiny(), tmp_path / "m.msgpack"))
+    model = str(export_model(_params(Config.tiny()), Config.tiny(), tmp_path / "m.msgpack"))
     argv = ["--model", model, "--frames", "2", "--batch", "2", "--no-progress"]
     scored = []
 

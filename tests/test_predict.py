@@ -54,6 +54,71 @@ def test_model_file_round_trip_and_bad_file(model_file, tmp_path):
         P.load_model(tmp_path)
 
 
+def test_a_model_file_must_hold_its_configs_network(model_file, tmp_path):
+    """A config field left out took its default (the shipped model without head.mask_prior
+    detected nothing, exit 0); parameters of another shape or tree than the config's
+    network were read, failing later with flax's traceback or, extra ones, silently dropped;
+    a file without its config or parameters raised a KeyError. Each is refused, named."""
+    from flax import serialization
+
+    good = serialization.msgpack_restore(model_file.read_bytes())
+    settings = json.loads(good["config"])
+
+    def load(name, **changes):
+        path = tmp_path / f"{name}.msgpack"
+        path.write_bytes(serialization.msgpack_serialize({**good, **changes}))
+        with pytest.raises(ValueError) as refused:
+            P.load_model(path)
+        assert str(refused.value).startswith(f"{path}: ")
+        return str(refused.value)[len(str(path)) + 2 :]
+
+    no_prior = copy.deepcopy(settings)
+    del no_prior["head"]["mask_prior"], no_prior["head"]["mask_pooled_class"]
+    text = json.dumps(no_prior)
+    expected = "missing config field(s) ['head.mask_pooled_class', 'head.mask_prior']"
+    assert load("no_prior", config=text) == expected
+    no_grid = json.dumps({k: v for k, v in settings.items() if k != "grid"})
+    assert load("no_grid", config=no_grid) == "missing config field(s) ['grid']"
+    assert load("not_json", config="{grid") == (
+        "its config is not valid JSON (Expecting property name enclosed in double quotes: "
+        "line 1 column 2 (char 1))"
+    )
+    assert load("no_config", config=None) == (
+        "not an indoorbev_jax model file (expected a config text and a tree of parameters, "
+        "got NoneType and dict)"
+    )
+    assert load("int_params", params=3).endswith("got str and int)")
+    params = good["params"]
+    flat = jax.tree_util.tree_flatten_with_path(params)[0]
+    name, kernel = next((jax.tree_util.keystr(p), x) for p, x in flat if x.ndim == 2)
+    assert kernel.shape[0] != kernel.shape[1]
+    swapped = jax.tree_util.tree_map_with_path(
+        lambda p, x: x.T if jax.tree_util.keystr(p) == name else x, params
+    )
+    assert load("swapped", params=swapped) == (
+        f"parameter {name} has shape {kernel.T.shape}, its config's model expects {kernel.shape}"
+    )
+    fewer = copy.deepcopy(params)
+    del fewer["params"]["head"]
+    assert re.fullmatch(
+        r"parameter \['params'\]\['head'\]\[.*\] is missing", load("no_head", params=fewer)
+    )
+    extra = copy.deepcopy(params)
+    extra["params"]["lateral"] = {"kernel": np.ones((2, 2), np.float32)}
+    assert load("extra", params=extra) == (
+        "parameter ['params']['lateral']['kernel'] is not in its config's model"
+    )
+    small = json.dumps(Config.small().to_dict())  # another preset's config over these params
+    assert "its config's model expects" in load("small_config", config=small)
+    # The fields added later may be left out (files written before them), and only they.
+    for path in LATER_FIELDS:
+        section, field = path.split(".")
+        del settings[section][field]
+    older = tmp_path / "older.msgpack"
+    older.write_bytes(serialization.msgpack_serialize({**good, "config": json.dumps(settings)}))
+    assert P.load_model(older)[0] == CFG
+
+
 def test_write_bag_clears_only_its_own_leftovers(tmp_path):
     from indoorbev_jax.rosbag import write_bag
 

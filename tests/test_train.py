@@ -1302,6 +1302,43 @@ def test_same_settings_compares_the_weight_names_too():
     assert not same_settings(one, {"learning_rate": [1e-3], "weights": {"focal": [1.0]}})
 
 
+def test_a_malformed_hypers_json_is_named(tmp_path):
+    """Exporting a sweep member read hypers.json unchecked: a KeyError, or an IndexError
+    after the checkpoint was read, for a list one member short."""
+    from indoorbev_jax import sweep
+    from indoorbev_jax.sweep import hypers_to_json
+
+    settings = CFG.to_dict()
+    settings["head"]["bogus"] = 1
+    (tmp_path / "config.json").write_text(json.dumps(settings))
+    (tmp_path / "hypers.json").write_text("{}")
+    with pytest.raises(
+        ValueError, match=r"config\.json: unknown config field\(s\) \['head\.bogus'\]$"
+    ):
+        sweep.load_member(tmp_path, 0)  # the config, named as load_params names it
+    (tmp_path / "config.json").write_text(CFG.to_json())
+    good = hypers_to_json(stack_hypers(CFG, [1e-3, 2e-3], {"dice": [1.0, 2.0]}))
+    path = tmp_path / "hypers.json"
+    cases = [
+        ({"weights": good["weights"]}, "has no field(s) ['learning_rate']"),
+        ({**good, "weights": [1.0]}, "'weights' is [1.0], expected an object of lists"),
+        ({**good, "learning_rate": []}, "'learning_rate' is [], expected K > 0 numbers"),
+        ({**good, "weights": {**good["weights"], "dice": [1.0]}},
+         "'weights.dice' is [1.0], expected 2 numbers"),
+        ({**good, "weights": {**good["weights"], "dice": [1.0, "2"]}},
+         "'weights.dice' is [1.0, '2'], expected 2 numbers"),
+        ({**good, "weights": {**good["weights"], "shape": [1.0, 2.0]}},
+         "no such loss weight(s) ['shape']"),
+    ]  # fmt: skip
+    for settings, message in cases:
+        path.write_text(json.dumps(settings))
+        with pytest.raises(ValueError, match=f"^{re.escape(f'{path}: {message}')}$"):
+            sweep.load_member(tmp_path, 0)
+    path.write_text(json.dumps(good))  # well formed: on to the missing checkpoints
+    with pytest.raises(FileNotFoundError, match="no checkpoint found"):
+        sweep.load_member(tmp_path, 1)
+
+
 def test_train_and_sweep_refuse_each_others_workdir(data, tmp_path):
     """With the same config and data the resume checks passed, and the first checkpoint
     save deleted the other run's checkpoints as 'unreadable'."""
@@ -1409,6 +1446,57 @@ def test_a_malformed_run_json_is_named_not_taken_for_a_sweep(tmp_path):
     for call in (lambda: T.load_params(tmp_path), lambda: rundir.check_run_kind(tmp_path, "train")):
         with pytest.raises(ValueError, match=r"run\.json: not valid JSON"):
             call()
+    # JSON, but not the object it must be: AttributeError and KeyError tracebacks before.
+    (tmp_path / "run.json").write_text("[]")
+    with pytest.raises(ValueError, match=r"run\.json: expected a JSON object, got list$"):
+        T.load_params(tmp_path)
+    (tmp_path / "run.json").write_text('{"kind": "train"}')
+    with pytest.raises(ValueError, match=r"run\.json: has no field\(s\) \['data'\]$"):
+        rundir.check_resume(tmp_path / "config.json", tmp_path / "run.json", CFG, None)
+
+
+def test_resume_names_a_bad_config_json_and_needs_one_beside_checkpoints(tmp_path):
+    """A resume's config.json errors named the field but not the file; a workdir whose
+    config.json was deleted resumed its checkpoints with whatever config was given, and
+    recorded that as theirs."""
+    config_path, run_path = tmp_path / "config.json", tmp_path / "run.json"
+    rundir.check_resume(config_path, run_path, CFG, None)  # nothing there: a fresh run
+    (tmp_path / "checkpoints" / "3").mkdir(parents=True)  # as if step 3 were saved
+    with pytest.raises(ValueError, match=r"holds checkpoints but no config\.json, so what "):
+        rundir.check_resume(config_path, run_path, CFG, None)
+    settings = CFG.to_dict()
+    del settings["train"]["learning_rate"]
+    config_path.write_text(json.dumps(settings))
+    expected = f"{config_path}: missing config field(s) ['train.learning_rate']"
+    with pytest.raises(ValueError, match=f"^{re.escape(expected)}$"):
+        rundir.check_resume(config_path, run_path, CFG, None)
+
+
+def test_an_unreadable_or_foreign_best_checkpoint(tmp_path, caplog, monkeypatch):
+    """An emptied best/<step> (a kill during its save) stopped export and predict with
+    orbax's KeyError: the latest readable checkpoint is read instead, said. A best/ of
+    another layout (config.json edited) raised orbax's shape error, naming no folder."""
+    monkeypatch.setattr(T, "init_state", lambda config, key: _scalar_state(0))
+    (tmp_path / "config.json").write_text(CFG.to_json())
+    ckpt = rundir.Checkpoints(tmp_path, keep=2)
+    ckpt.save(_scalar_state(3))
+    ckpt.save_best(_scalar_state(2), {"pq": 0.5})
+    ckpt.close()
+    assert float(T.load_params(tmp_path)[1]["w"]) == 2.0  # best/ by default
+    shutil.copytree(tmp_path / "best" / "2", tmp_path / "best_2")
+    shutil.rmtree(tmp_path / "best" / "2")
+    (tmp_path / "best" / "2").mkdir()
+    with caplog.at_level("WARNING"):
+        assert float(T.load_params(tmp_path)[1]["w"]) == 3.0
+    assert f"{tmp_path / 'best' / '2'} is unreadable (" in caplog.text
+    assert f"{tmp_path / 'best'}: using the latest readable checkpoint instead" in caplog.text
+    shutil.rmtree(tmp_path / "best" / "2")
+    shutil.copytree(tmp_path / "best_2", tmp_path / "best" / "2")
+    wide = T.TrainState(step=jnp.int32(0), params={"w": jnp.zeros(3)}, opt_state=(),
+                        skipped=jnp.int32(0))  # fmt: skip
+    monkeypatch.setattr(T, "init_state", lambda config, key: wide)
+    with pytest.raises(ValueError, match=f"^{re.escape(str(tmp_path / 'best' / '2'))}: holds 3"):
+        T.load_params(tmp_path)
 
 
 def test_data_generation_and_the_train_step_trace_as_one_jit():

@@ -828,8 +828,18 @@ class Config:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Config:
-        """Inverse of ``to_dict`` (lists become tuples); unknown keys are an error."""
+        """Inverse of ``to_dict`` (lists become tuples); unknown keys are an error, and so
+        are missing ones but the ``LATER_FIELDS`` (their defaults)."""
         return _from_dict(cls, d, "")
+
+    @classmethod
+    def from_file_dict(cls, d: dict[str, Any], path: str | os.PathLike) -> Config:
+        """``from_dict`` of a config read from ``path`` (a run's config.json, a model
+        file): its errors name the file."""
+        try:
+            return _from_dict(cls, d, "")
+        except ConfigError as e:
+            raise ConfigError(f"{path}: {e}") from None
 
 
 # Fields added after files recording a config were written, with their defaults (the
@@ -854,6 +864,11 @@ def _from_dict(kind, d: dict[str, Any], prefix: str):
     unknown = set(d) - set(fields)
     if unknown:
         raise ConfigError(f"unknown config field(s) {sorted(prefix + k for k in unknown)}")
+    # A field left out took its default: a model file without head.mask_prior ran with the
+    # prior off and detected nothing, exit 0.
+    missing = sorted(prefix + k for k in fields if k not in d and prefix + k not in LATER_FIELDS)
+    if missing:
+        raise ConfigError(f"missing config field(s) {missing}")
     hints = typing.get_type_hints(kind)
     kwargs = {}
     for name, value in d.items():

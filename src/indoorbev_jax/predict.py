@@ -112,8 +112,13 @@ def export_model(params: Any, config: Config, path: str | os.PathLike) -> Path:
     return path
 
 
-def load_model(path: str | os.PathLike) -> tuple[Config, Any]:
-    """(config, params) from a run directory or an exported model file."""
+def load_model(path: str | os.PathLike, *, check: bool = True) -> tuple[Config, Any]:
+    """(config, params) from a run directory or an exported model file.
+
+    A file's parameters must be the tree of arrays its config's network has, name for name
+    and shape for shape (``check``; ``train.with_pretrained`` checks them against the run's
+    network instead), or a ``ValueError`` names the file and the first that differs.
+    """
     from flax import serialization
 
     path = Path(path)
@@ -123,13 +128,57 @@ def load_model(path: str | os.PathLike) -> tuple[Config, Any]:
         return load_params(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such model file or run directory")
+    data = path.read_bytes()  # an OSError names the file and says why (not "not a model")
     try:
-        payload = serialization.msgpack_restore(path.read_bytes())
+        payload = serialization.msgpack_restore(data)
     except Exception as e:  # noqa: BLE001 - any decoding failure means a bad file
         raise ValueError(f"{path}: not an indoorbev_jax model file ({e})") from None
     if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:
         raise ValueError(f"{path}: not an indoorbev_jax model file (format {MODEL_FORMAT})")
-    return Config.from_dict(json.loads(payload["config"])), payload["params"]
+    text, params = payload.get("config"), payload.get("params")
+    if not isinstance(text, str) or not isinstance(params, dict):
+        raise ValueError(
+            f"{path}: not an indoorbev_jax model file (expected a config text and a tree of "
+            f"parameters, got {type(text).__name__} and {type(params).__name__})"
+        )
+    try:
+        settings = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: its config is not valid JSON ({e})") from None
+    config = Config.from_file_dict(settings, path)
+    if check:
+        differences = param_differences(params, param_shapes(config), "its config's model")
+        if differences:
+            raise ValueError(f"{path}: {differences[0][2]}")
+    return config, params
+
+
+@functools.lru_cache(maxsize=4)
+def param_shapes(config: Config) -> Any:
+    """The parameter tree of ``config``'s network, as shapes (traced, nothing computed)."""
+    n = config.data.max_points
+    inputs = jax.ShapeDtypeStruct((1, n, 4), jnp.float32), jax.ShapeDtypeStruct((1, n), bool)
+    return jax.eval_shape(IndoorBEV(config).init, jax.random.key(0), *inputs)
+
+
+def param_differences(have: Any, want: Any, whose: str) -> list[tuple[Any, str, str]]:
+    """Where parameter tree ``have`` differs from ``want`` (arrays or shapes), in key path
+    order: (key path, kind "missing" / "extra" / "shape", the problem in words, saying
+    ``whose`` model ``want`` is)."""
+    have = dict(jax.tree_util.tree_flatten_with_path(have)[0])
+    want = dict(jax.tree_util.tree_flatten_with_path(want)[0])
+    out = []
+    for path in sorted(want.keys() | have.keys(), key=jax.tree_util.keystr):
+        name = jax.tree_util.keystr(path)
+        if path not in have:
+            out.append((path, "missing", f"parameter {name} is missing"))
+        elif path not in want:
+            out.append((path, "extra", f"parameter {name} is not in {whose}"))
+        elif np.shape(have[path]) != tuple(want[path].shape):
+            shape = np.shape(have[path])
+            problem = f"parameter {name} has shape {shape}, {whose} expects {want[path].shape}"
+            out.append((path, "shape", problem))
+    return out
 
 
 def with_thresholds(
@@ -214,17 +263,10 @@ def average_models(
                     f"{first_path} has {getattr(mine, field)!r}; only models of one "
                     f"architecture can be averaged"
                 )
+        # load_model checked each tree against its config, and the configs' architectures
+        # are equal: the trees are alike, name for name and shape for shape.
         flat = dict(jax.tree_util.tree_flatten_with_path(params)[0])
-        for key in flat_first.keys() | flat.keys():
-            name = jax.tree_util.keystr(key)
-            if key not in flat or key not in flat_first:
-                where = path if key not in flat else first_path
-                raise ValueError(f"{where}: no parameter {name}; the models differ in structure")
-            if np.shape(flat[key]) != np.shape(flat_first[key]):
-                raise ValueError(
-                    f"{path}: parameter {name} has shape {np.shape(flat[key])}, but "
-                    f"{first_path} has {np.shape(flat_first[key])}"
-                )
+        for key in flat_first:
             total[key] += np.asarray(flat[key], np.float64)
     leaves = [(total[k] / len(paths)).astype(np.asarray(v).dtype) for k, v in flat_first.items()]
     sim = dataclasses.replace(config.sim, sensor_height=(lo, hi), sensor_tilt_jitter=jitter)

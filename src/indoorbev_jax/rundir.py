@@ -64,6 +64,26 @@ def _check_layout(folder: Path, stored, abstract) -> None:
     )
 
 
+class _Unreadable(Exception):
+    """A checkpoint orbax cannot restore (cut short, emptied, damaged)."""
+
+
+def _restore_checked(manager: ocp.CheckpointManager, step: int, template: TrainState):
+    """``manager``'s checkpoint ``step`` as ``template``'s tree: a layout other than the
+    template's raises ``ValueError`` (``_check_layout``), any failure to read ``_Unreadable``."""
+    abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template)
+    try:
+        stored = manager.item_metadata(step)
+    except Exception:  # noqa: BLE001 - no readable layout: the restore below decides
+        stored = None
+    if stored is not None:
+        _check_layout(manager.directory / str(step), stored, abstract)
+    try:
+        return manager.restore(step, args=ocp.args.StandardRestore(abstract))
+    except Exception as e:  # noqa: BLE001 - any unreadable checkpoint: the caller falls back
+        raise _Unreadable(e) from e
+
+
 class Checkpoints:
     """Orbax checkpoints: the latest ``keep`` under ``checkpoints/``, the best by a
     validation metric under ``best/``. Restoring falls back to older checkpoints, with a
@@ -115,21 +135,30 @@ class Checkpoints:
         """The newest readable checkpoint, or None when there is none. A checkpoint whose
         arrays are not the template's (another kind of run: a sweep's K stacked models, a
         model of another shape) raises ``ValueError``: falling back past it would delete it."""
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template)
         self.latest.reload()
         for step in sorted(self.latest.all_steps(), reverse=True):
             try:
-                stored = self.latest.item_metadata(step)
-            except Exception:  # noqa: BLE001 - no readable layout: the restore below decides
-                stored = None
-            if stored is not None:
-                _check_layout(self.latest.directory / str(step), stored, abstract)
-            try:
-                return self.latest.restore(step, args=ocp.args.StandardRestore(abstract))
-            except Exception as e:  # noqa: BLE001 - any unreadable checkpoint falls back
+                return _restore_checked(self.latest, step, template)
+            except _Unreadable as e:
                 log.warning("checkpoint %d is unreadable (%s); trying an older one", step, e)
                 self.unreadable.add(step)
         return None
+
+    def restore_best(self, template: TrainState) -> TrainState | None:
+        """The best checkpoint, or None (a warning naming it) when there is none or it is
+        unreadable; arrays not the template's raise ``ValueError``, as in ``restore``."""
+        if self.best is None:
+            return None
+        # No ranked step when its metrics are gone (an emptied folder): best/ keeps one.
+        step = self.best.best_step()
+        step = max(self.best.all_steps(), default=None) if step is None else step
+        if step is None:
+            return None
+        try:
+            return _restore_checked(self.best, step, template)
+        except _Unreadable as e:
+            log.warning("%s is unreadable (%s)", self.best.directory / str(step), e)
+            return None
 
     def close(self) -> None:
         self.latest.close()
@@ -252,13 +281,24 @@ def read_json(path: Path):
         raise ValueError(f"{path}: not valid JSON ({e})") from None
 
 
+def read_record(path: Path, fields: tuple[str, ...] = ()) -> dict:
+    """``path``'s JSON object, holding ``fields``; anything else is a ValueError naming it."""
+    record = read_json(path)
+    if not isinstance(record, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(record).__name__}")
+    missing = [name for name in fields if name not in record]
+    if missing:
+        raise ValueError(f"{path}: has no field(s) {missing}")
+    return record
+
+
 def other_kind(workdir: Path, kind: str) -> str | None:
     """What says ``workdir`` holds the other kind of run than ``kind`` ("train" or
     "sweep"), or None: run.json's kind, or for a run.json from before it named one, the
     files only the other kind writes."""
     other = "sweep" if kind == "train" else "train"
     run_path = workdir / "run.json"
-    recorded = read_json(run_path).get("kind") if run_path.exists() else None
+    recorded = read_record(run_path).get("kind") if run_path.exists() else None
     if recorded:
         return f"run.json says {other!r}" if recorded == other else None
     found = [name for name in _KIND_FILES[other] if (workdir / name).exists()]
@@ -288,8 +328,17 @@ def check_resume(
     """Raises ``ValueError`` unless the run (``kind`` "train" or "sweep") in
     ``config_path``'s folder may go on with ``config`` and ``data`` (a resolved folder, or
     None for the simulator): only fields in ``RESUME_MAY_CHANGE`` may differ (logged as a
-    note), and the data source and the split lists it reads may not."""
-    diff = config_diff(Config.from_dict(json.loads(config_path.read_text())), config)
+    note), and the data source and the split lists it reads may not. A folder without
+    ``config.json`` is a fresh run, unless it holds checkpoints."""
+    if not config_path.exists():
+        if _has_checkpoint(config_path.parent):  # their settings are unknown: not resumed
+            raise ValueError(
+                f"{config_path.parent}: holds checkpoints but no config.json, so what they "
+                f"were trained with is unknown; put its config.json back, or {kind} in "
+                "another workdir"
+            )
+        return
+    diff = config_diff(Config.from_file_dict(read_json(config_path), config_path), config)
     lines = {k: f"  {k}: {a!r} -> {b!r}" for k, (a, b) in diff.items()}
     refused = [line for k, line in lines.items() if k not in RESUME_MAY_CHANGE]
     elsewhere = _elsewhere(kind)
@@ -309,7 +358,7 @@ def check_resume(
         log.info("note: resuming with (saved -> given):\n%s", "\n".join(lines.values()))
     if not run_path.exists():  # a run from before run.json was kept: nothing to compare
         return
-    record = read_json(run_path)
+    record = read_record(run_path, ("data",))
     saved = record["data"]
     if saved != data:
         raise ValueError(

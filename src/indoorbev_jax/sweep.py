@@ -21,13 +21,14 @@ import numpy as np
 from tqdm import tqdm
 
 from indoorbev_jax.augment import ObjectDatabase
-from indoorbev_jax.config import Config, check_train_seed
+from indoorbev_jax.config import Config, LossConfig, check_train_seed
 from indoorbev_jax.rundir import (
     Checkpoints,
     check_resume,
     check_run_kind,
     holds_workdir,
     read_json,
+    read_record,
     run_record,
     truncate_log,
     write_text_atomic,
@@ -123,6 +124,27 @@ def init_sweep(config: Config, k: int, key: jax.Array) -> TrainState:
     return jax.tree.map(lambda x: jnp.broadcast_to(x, (k, *jnp.shape(x))), state)
 
 
+def _read_hypers(path: Path, loss: LossConfig) -> dict:
+    """A sweep's hypers.json (``hypers_to_json``): K > 0 learning rates and K values of
+    weights of ``loss``, or a ValueError naming the file and what is wrong."""
+    settings = read_record(path, ("learning_rate", "weights"))
+    rates, weights = settings["learning_rate"], settings["weights"]
+    if not isinstance(weights, dict):
+        raise ValueError(f"{path}: 'weights' is {weights!r}, expected an object of lists")
+    k = len(rates) if isinstance(rates, list) and rates else None
+    lists = {"learning_rate": rates, **{f"weights.{name}": v for name, v in weights.items()}}
+    for name, values in lists.items():
+        numbers = isinstance(values, list) and all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in values
+        )
+        if not numbers or len(values) != k:
+            raise ValueError(f"{path}: '{name}' is {values!r}, expected {k or 'K > 0'} numbers")
+    unknown = sorted(name for name in weights if not hasattr(loss, f"{name}_weight"))
+    if unknown:
+        raise ValueError(f"{path}: no such loss weight(s) {unknown}")
+    return settings
+
+
 def load_member(workdir, member: int) -> tuple[Config, Any]:
     """(config, params) of model ``member`` of a sweep's latest checkpoint, as
     ``train.load_params`` gives a training run's: the config carries that member's learning
@@ -130,8 +152,8 @@ def load_member(workdir, member: int) -> tuple[Config, Any]:
     workdir = Path(workdir)
     if not (workdir / "hypers.json").is_file():
         raise FileNotFoundError(f"{workdir}: not a sweep's workdir (no hypers.json)")
-    config = Config.from_dict(read_json(workdir / "config.json"))
-    settings = read_json(workdir / "hypers.json")
+    config = Config.from_file_dict(read_json(workdir / "config.json"), workdir / "config.json")
+    settings = _read_hypers(workdir / "hypers.json", config.loss)
     k = len(settings["learning_rate"])
     if not 0 <= member < k:
         raise ValueError(f"--member {member}: the sweep in {workdir} has members 0..{k - 1}")
@@ -239,8 +261,7 @@ def run_sweep(
     data_source = None if data is None else str(Path(data).resolve())
     settings = hypers_to_json(hypers)
     check_run_kind(workdir, "sweep")
-    if config_path.exists():
-        check_resume(config_path, run_path, config, data_source, "sweep")
+    check_resume(config_path, run_path, config, data_source, "sweep")
     saved = read_json(hypers_path) if hypers_path.exists() else None
     if saved is not None and not same_settings(saved, settings):
         raise ValueError(

@@ -32,12 +32,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-import orbax.checkpoint as ocp
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from indoorbev_jax.augment import ObjectDatabase, augment_batch
-from indoorbev_jax.config import Config, ConfigError, check_train_seed
+from indoorbev_jax.config import Config, check_train_seed
 from indoorbev_jax.data import kitti
 from indoorbev_jax.losses import seed_loss, set_loss
 from indoorbev_jax.models import IndoorBEV
@@ -219,9 +218,9 @@ def _load_pretrained(
 ) -> tuple[TrainState, dict[str, list[str]]]:
     """``with_pretrained`` and its report: ``fresh`` (the run's parameters not loaded, with
     the reason) and ``unused`` (the source's parameters the run has no place for)."""
-    from indoorbev_jax.predict import load_model
+    from indoorbev_jax.predict import load_model, param_differences
 
-    src_config, params = load_model(source)
+    src_config, params = load_model(source, check=False)  # checked against the run's model
     for field in ("grid", "data.class_names"):
         ours, theirs = config, src_config
         for part in field.split("."):
@@ -234,26 +233,18 @@ def _load_pretrained(
     want = dict(leaves)
     have = dict(jax.tree_util.tree_flatten_with_path(params)[0])
     report: dict[str, list[str]] = {"fresh": [], "unused": []}
-    matched = set()
-    for path in sorted(want.keys() | have.keys(), key=jax.tree_util.keystr):
+    differences = param_differences(params, state.params, "the run's model")
+    if strict and differences:
+        raise ValueError(f"{source}: {differences[0][2]}")
+    for path, kind, _ in differences:
         name = jax.tree_util.keystr(path)
-        if path not in have:
-            problem = f"parameter {name} is missing"
-            report["fresh"].append(f"{name} (missing)")
-        elif path not in want:
-            problem = f"parameter {name} is not in the run's model"
+        if kind == "extra":
             report["unused"].append(name)
-        elif np.shape(have[path]) != want[path].shape:
-            problem = (
-                f"parameter {name} has shape {np.shape(have[path])}, "
-                f"the run's model expects {want[path].shape}"
-            )
-            report["fresh"].append(f"{name} (shape {np.shape(have[path])} != {want[path].shape})")
+        elif kind == "missing":
+            report["fresh"].append(f"{name} (missing)")
         else:
-            matched.add(path)
-            continue
-        if strict:
-            raise ValueError(f"{source}: {problem}")
+            report["fresh"].append(f"{name} (shape {np.shape(have[path])} != {want[path].shape})")
+    matched = (want.keys() & have.keys()) - {path for path, *_ in differences}
     if not matched:
         raise ValueError(f"{source}: no parameter matches the run's model by name and shape")
     loaded = [
@@ -517,8 +508,7 @@ def train_and_evaluate(
     config_path, run_path = workdir / "config.json", workdir / "run.json"
     data_source = None if data is None else str(Path(data).resolve())
     check_run_kind(workdir, "train")
-    if config_path.exists():
-        check_resume(config_path, run_path, config, data_source)
+    check_resume(config_path, run_path, config, data_source)
 
     t = config.train
     mesh = data_mesh()
@@ -627,10 +617,7 @@ def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config
             f"{workdir}: not a training run directory (no config.json); expected the --workdir "
             "of experiments/train.py"
         )
-    try:
-        config = Config.from_dict(read_json(config_file))
-    except ConfigError as e:
-        raise ConfigError(f"{config_file}: {e}") from None
+    config = Config.from_file_dict(read_json(config_file), config_file)
     if other_kind(workdir, "train"):
         raise ValueError(
             f"{workdir}: a sweep's workdir: its checkpoints hold K stacked models, which "
@@ -644,12 +631,11 @@ def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config
     # No best/ made where there is none (orbax creates the folder it is given).
     has_best = (workdir / "best").is_dir()
     checkpoints = Checkpoints(workdir, config.train.keep_checkpoints, "pq" if has_best else None)
-    use_best = which == "best" and has_best and checkpoints.best.all_steps()
-    manager = checkpoints.best if use_best else None
     state = None
-    if manager is not None:
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, template)
-        state = manager.restore(manager.best_step(), args=ocp.args.StandardRestore(abstract))
+    if which == "best" and has_best:
+        state = checkpoints.restore_best(template)
+        if state is None and checkpoints.best.all_steps():
+            log.warning("%s: using the latest readable checkpoint instead", workdir / "best")
     if state is None:
         state = checkpoints.restore(template)
     checkpoints.close()
