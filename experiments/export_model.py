@@ -19,7 +19,7 @@ from indoorbev_jax.cli import HelpFormatter, add_views_argument
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.predict import export_model, load_model, with_thresholds
 from indoorbev_jax.sweep import load_member
-from indoorbev_jax.train import load_params
+from indoorbev_jax.train import load_run
 
 
 def main(argv=None) -> None:
@@ -67,7 +67,7 @@ def main(argv=None) -> None:
         if args.member is not None:
             config, params = load_member(args.run, args.member)
         elif from_run:
-            config, params = load_params(args.run, args.which)
+            config, params, source = load_run(args.run, args.which)
         else:
             config, params = load_model(args.run)
     except (OSError, ValueError) as e:
@@ -85,9 +85,10 @@ def main(argv=None) -> None:
     same = jax.tree.all(jax.tree.map(lambda a, b: bool((a == b).all()), params, back))
     if not same:
         raise SystemExit(f"{path}: parameters did not read back unchanged")
-    source = args.which if from_run else "model file"
     if args.member is not None:
         source = f"sweep member {args.member}, latest"
+    elif not from_run:
+        source = "model file"
     print(f"{args.run} ({source}, preset {config.name}, {count:,} parameters, score "
           f"threshold {config.inference.score_threshold}, mask threshold "
           f"{config.inference.mask_threshold}, views {','.join(config.inference.views)}) -> "

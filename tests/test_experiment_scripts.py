@@ -182,7 +182,9 @@ def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tm
     export = _script("export_model")
     params = _params(Config.tiny(), lambda shape: np.arange(shape[-1]))
     loaded = []
-    export.load_params = lambda run, which: loaded.append(which) or (Config.tiny(), params)
+    export.load_run = lambda run, which: (
+        loaded.append(which) or (Config.tiny(), params, "best, step 7")
+    )
     run = tmp_path / "run"
     run.mkdir()
     out = tmp_path / "m.msgpack"
@@ -195,6 +197,7 @@ def test_export_model_rejects_an_out_of_range_threshold_and_stores_a_good_one(tm
     )
     config, back = load_model(out)
     assert set(loaded) == {"best"}  # without --which: the best one (docs/TRAINING.md)
+    assert f"{run} (best, step 7, preset tiny, " in capsys.readouterr().out  # what was read
     assert (config.inference.score_threshold, config.inference.mask_threshold) == (0.3, 0.4)
     assert config.inference.views == ("identity",)
     jax.tree.map(np.testing.assert_array_equal, back, params)

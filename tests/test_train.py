@@ -1472,10 +1472,26 @@ def test_resume_names_a_bad_config_json_and_needs_one_beside_checkpoints(tmp_pat
         rundir.check_resume(config_path, run_path, CFG, None)
 
 
+def test_train_and_sweep_refuse_checkpoints_without_config_json(tmp_path):
+    """The refusal at the start of each kind of run, before anything is written."""
+    from indoorbev_jax.sweep import run_sweep
+
+    (tmp_path / "checkpoints" / "3").mkdir(parents=True)  # as if step 3 were saved
+    hypers = stack_hypers(CFG, [1e-3], {})
+    for start in (
+        lambda: T.train_and_evaluate(CFG, tmp_path),
+        lambda: run_sweep(CFG, tmp_path, hypers),
+    ):
+        with pytest.raises(ValueError, match=r"holds checkpoints but no config\.json"):
+            start()
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".lock", "checkpoints"]  # its lock
+
+
 def test_an_unreadable_or_foreign_best_checkpoint(tmp_path, caplog, monkeypatch):
     """An emptied best/<step> (a kill during its save) stopped export and predict with
-    orbax's KeyError: the latest readable checkpoint is read instead, said. A best/ of
-    another layout (config.json edited) raised orbax's shape error, naming no folder."""
+    orbax's KeyError: the latest readable checkpoint is read instead, said (load_run says
+    which it read, as export_model.py prints). A best/ of another layout (config.json
+    edited) raised orbax's shape error, naming no folder."""
     monkeypatch.setattr(T, "init_state", lambda config, key: _scalar_state(0))
     (tmp_path / "config.json").write_text(CFG.to_json())
     ckpt = rundir.Checkpoints(tmp_path, keep=2)
@@ -1483,13 +1499,27 @@ def test_an_unreadable_or_foreign_best_checkpoint(tmp_path, caplog, monkeypatch)
     ckpt.save_best(_scalar_state(2), {"pq": 0.5})
     ckpt.close()
     assert float(T.load_params(tmp_path)[1]["w"]) == 2.0  # best/ by default
+    assert T.load_run(tmp_path)[2] == "best, step 2"
+    assert T.load_run(tmp_path, "latest")[2] == "latest, step 3"
     shutil.copytree(tmp_path / "best" / "2", tmp_path / "best_2")
     shutil.rmtree(tmp_path / "best" / "2")
     (tmp_path / "best" / "2").mkdir()
     with caplog.at_level("WARNING"):
-        assert float(T.load_params(tmp_path)[1]["w"]) == 3.0
+        _, params, source = T.load_run(tmp_path)
+    assert float(params["w"]) == 3.0 and source == "latest, step 3 (best/ unreadable)"
     assert f"{tmp_path / 'best' / '2'} is unreadable (" in caplog.text
-    assert f"{tmp_path / 'best'}: using the latest readable checkpoint instead" in caplog.text
+    assert f"{tmp_path / 'best'}: read the latest readable checkpoint instead (step 3)" in (
+        caplog.text
+    )
+    # No other checkpoint: said so, not "read the latest" and then "no checkpoint found".
+    shutil.move(tmp_path / "checkpoints", tmp_path / "checkpoints_kept")
+    (tmp_path / "checkpoints").mkdir()
+    caplog.clear()
+    with pytest.raises(FileNotFoundError, match=r": no checkpoint found \(.*best unreadable\)$"):
+        T.load_params(tmp_path)
+    assert "read the latest" not in caplog.text
+    shutil.rmtree(tmp_path / "checkpoints")
+    shutil.move(tmp_path / "checkpoints_kept", tmp_path / "checkpoints")
     shutil.rmtree(tmp_path / "best" / "2")
     shutil.copytree(tmp_path / "best_2", tmp_path / "best" / "2")
     wide = T.TrainState(step=jnp.int32(0), params={"w": jnp.zeros(3)}, opt_state=(),

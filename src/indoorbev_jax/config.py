@@ -829,15 +829,21 @@ class Config:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Config:
         """Inverse of ``to_dict`` (lists become tuples); unknown keys are an error, and so
-        are missing ones but the ``LATER_FIELDS`` (their defaults)."""
-        return _from_dict(cls, d, "")
+        are missing ones but the ``OPTIONAL_FIELDS`` (their defaults)."""
+        config = _from_dict(cls, d, "")
+        # A field left out took its default: a model file without head.mask_prior ran with
+        # the prior off and detected nothing, exit 0.
+        missing = sorted(_missing_fields(cls, d, ""))
+        if missing:
+            raise ConfigError(f"missing config field(s) {missing}")
+        return config
 
     @classmethod
     def from_file_dict(cls, d: dict[str, Any], path: str | os.PathLike) -> Config:
         """``from_dict`` of a config read from ``path`` (a run's config.json, a model
         file): its errors name the file."""
         try:
-            return _from_dict(cls, d, "")
+            return cls.from_dict(d)
         except ConfigError as e:
             raise ConfigError(f"{path}: {e}") from None
 
@@ -845,6 +851,17 @@ class Config:
 # Fields added after files recording a config were written, with their defaults (the
 # behaviour before them): ``Config.stable_dict`` leaves them out at the default.
 LATER_FIELDS: dict[str, Any] = {"sim.sensor_rpy": (0.0, 0.0, 0.0), "sim.sensor_tilt_jitter": 0.0}
+
+# The fields a config read from a file may lack, with their defaults (the behaviour before
+# them): the ``LATER_FIELDS`` and those added after model files were shipped, which files
+# written since always hold (so unlike the ``LATER_FIELDS`` they count in a model's hash).
+OPTIONAL_FIELDS: dict[str, Any] = {
+    **LATER_FIELDS,
+    "train.ema_decay": 0.0,
+    "augment.intensity_drop_prob": 0.0,
+    "inference.views": ("identity",),
+    "inference.view_iou": 0.5,
+}
 
 
 def check_section(arg: str, value, kind: type, field: str):
@@ -864,11 +881,6 @@ def _from_dict(kind, d: dict[str, Any], prefix: str):
     unknown = set(d) - set(fields)
     if unknown:
         raise ConfigError(f"unknown config field(s) {sorted(prefix + k for k in unknown)}")
-    # A field left out took its default: a model file without head.mask_prior ran with the
-    # prior off and detected nothing, exit 0.
-    missing = sorted(prefix + k for k in fields if k not in d and prefix + k not in LATER_FIELDS)
-    if missing:
-        raise ConfigError(f"missing config field(s) {missing}")
     hints = typing.get_type_hints(kind)
     kwargs = {}
     for name, value in d.items():
@@ -886,6 +898,19 @@ def _from_dict(kind, d: dict[str, Any], prefix: str):
                 value = _to_tuple(value) if isinstance(value, list) else value
         kwargs[name] = value
     return kind(**kwargs)
+
+
+def _missing_fields(kind, d: dict[str, Any], prefix: str) -> list[str]:
+    """The fields of ``kind`` that ``d`` (checked by ``_from_dict``) lacks, in every
+    section, but the ``OPTIONAL_FIELDS``."""
+    hints = typing.get_type_hints(kind)
+    missing = []
+    for name in (f.name for f in dataclasses.fields(kind)):
+        if name not in d:
+            missing += [] if prefix + name in OPTIONAL_FIELDS else [prefix + name]
+        elif isinstance(hints[name], type) and dataclasses.is_dataclass(hints[name]):
+            missing += _missing_fields(hints[name], d[name], f"{prefix}{name}.")
+    return missing
 
 
 def _to_tuple(value):

@@ -603,6 +603,12 @@ def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config
 
     ``predict.load_model`` reads a run directory or an exported model file alike.
     """
+    return load_run(workdir, which)[:2]
+
+
+def load_run(workdir: str | os.PathLike, which: str = "best") -> tuple[Config, Any, str]:
+    """``load_params`` and which checkpoint it read, in words: "best, step 3", "latest,
+    step 5", or "latest, step 5 (best/ unreadable)" when the best one could not be read."""
     if which not in ("best", "latest"):  # a typo loaded the latest checkpoint
         raise ValueError(f"which: expected 'best' or 'latest', got {which!r}")
     workdir = Path(workdir)
@@ -631,14 +637,19 @@ def load_params(workdir: str | os.PathLike, which: str = "best") -> tuple[Config
     # No best/ made where there is none (orbax creates the folder it is given).
     has_best = (workdir / "best").is_dir()
     checkpoints = Checkpoints(workdir, config.train.keep_checkpoints, "pq" if has_best else None)
-    state = None
+    state, source, unreadable = None, "best", False
     if which == "best" and has_best:
         state = checkpoints.restore_best(template)
-        if state is None and checkpoints.best.all_steps():
-            log.warning("%s: using the latest readable checkpoint instead", workdir / "best")
+        unreadable = state is None and bool(checkpoints.best.all_steps())
     if state is None:
-        state = checkpoints.restore(template)
+        state, source = checkpoints.restore(template), "latest"
     checkpoints.close()
     if state is None:
-        raise FileNotFoundError(f"{workdir}: no checkpoint found")
-    return config, eval_params(state)
+        said = f" ({workdir / 'best'} unreadable)" if unreadable else ""
+        raise FileNotFoundError(f"{workdir}: no checkpoint found{said}")
+    source = f"{source}, step {int(state.step)}"
+    if unreadable:
+        log.warning("%s: read the latest readable checkpoint instead (step %d)",
+                    workdir / "best", int(state.step))  # fmt: skip
+        source += " (best/ unreadable)"
+    return config, eval_params(state), source
