@@ -115,9 +115,10 @@ def export_model(params: Any, config: Config, path: str | os.PathLike) -> Path:
 def load_model(path: str | os.PathLike, *, check: bool = True) -> tuple[Config, Any]:
     """(config, params) from a run directory or an exported model file.
 
-    A file's parameters must be the tree of arrays its config's network has, name for name
-    and shape for shape (``check``; ``train.with_pretrained`` checks them against the run's
-    network instead), or a ``ValueError`` names the file and the first that differs.
+    A file's config must hold every field but ``config.OPTIONAL_FIELDS``, and its
+    parameters must be the tree of arrays that config's network has, name for name and
+    shape for shape (``check``; ``train.with_pretrained`` checks them against the run's
+    network instead), or a ``ValueError`` names the file and what differs.
     """
     from flax import serialization
 
