@@ -54,6 +54,15 @@ def test_model_file_round_trip_and_bad_file(model_file, tmp_path):
         P.load_model(tmp_path)
 
 
+def test_a_pipe_given_as_the_model_is_named_not_read(tmp_path, errors_without_blocking):
+    os.mkfifo(tmp_path / "m.msgpack")
+    errors = errors_without_blocking({"model": lambda: P.load_model(tmp_path / "m.msgpack")})
+    assert (
+        str(errors["model"])
+        == f"{tmp_path / 'm.msgpack'}: a pipe, socket or device, not a model file"
+    )
+
+
 def test_a_model_file_must_hold_its_configs_network(model_file, tmp_path):
     """A config field left out took its default (the shipped model without head.mask_prior
     detected nothing, exit 0); parameters of another shape or tree than the config's

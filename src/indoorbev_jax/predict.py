@@ -129,6 +129,7 @@ def load_model(path: str | os.PathLike, *, check: bool = True) -> tuple[Config, 
         return load_params(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such model file or run directory")
+    kitti.check_regular_file(path, "a model file")  # a pipe blocked the read forever
     data = path.read_bytes()  # an OSError names the file and says why (not "not a model")
     try:
         payload = serialization.msgpack_restore(data)
