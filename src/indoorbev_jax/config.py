@@ -830,12 +830,12 @@ class Config:
     def from_dict(cls, d: dict[str, Any]) -> Config:
         """Inverse of ``to_dict`` (lists become tuples); unknown keys are an error, and so
         are missing ones but the ``OPTIONAL_FIELDS`` (their defaults)."""
-        config = _from_dict(cls, d, "")
+        missing: list[str] = []
+        config = _from_dict(cls, d, "", missing)
         # A field left out took its default: a model file without head.mask_prior ran with
         # the prior off and detected nothing, exit 0.
-        missing = sorted(_missing_fields(cls, d, ""))
         if missing:
-            raise ConfigError(f"missing config field(s) {missing}")
+            raise ConfigError(f"missing config field(s) {sorted(missing)}")
         return config
 
     @classmethod
@@ -873,7 +873,9 @@ def check_section(arg: str, value, kind: type, field: str):
     return value
 
 
-def _from_dict(kind, d: dict[str, Any], prefix: str):
+def _from_dict(kind, d: dict[str, Any], prefix: str, missing: list[str]):
+    """``kind`` from ``d``, its sections included; adds the fields ``d`` lacks but the
+    ``OPTIONAL_FIELDS`` to ``missing`` (they take their defaults)."""
     if not isinstance(d, dict):
         section = prefix.rstrip(".") or "config"
         raise ConfigError(f"config section '{section}': expected an object, got {d!r}")
@@ -881,11 +883,12 @@ def _from_dict(kind, d: dict[str, Any], prefix: str):
     unknown = set(d) - set(fields)
     if unknown:
         raise ConfigError(f"unknown config field(s) {sorted(prefix + k for k in unknown)}")
+    missing += [prefix + k for k in fields if k not in d and prefix + k not in OPTIONAL_FIELDS]
     hints = typing.get_type_hints(kind)
     kwargs = {}
     for name, value in d.items():
         if isinstance(hints[name], type) and dataclasses.is_dataclass(hints[name]):  # a section
-            value = _from_dict(hints[name], value, f"{prefix}{name}.")
+            value = _from_dict(hints[name], value, f"{prefix}{name}.", missing)
         else:
             # A hand-edited config.json ("2" for 2, "false" for false) fails here, naming the
             # field, rather than deep inside a jitted function.
@@ -898,19 +901,6 @@ def _from_dict(kind, d: dict[str, Any], prefix: str):
                 value = _to_tuple(value) if isinstance(value, list) else value
         kwargs[name] = value
     return kind(**kwargs)
-
-
-def _missing_fields(kind, d: dict[str, Any], prefix: str) -> list[str]:
-    """The fields of ``kind`` that ``d`` (checked by ``_from_dict``) lacks, in every
-    section, but the ``OPTIONAL_FIELDS``."""
-    hints = typing.get_type_hints(kind)
-    missing = []
-    for name in (f.name for f in dataclasses.fields(kind)):
-        if name not in d:
-            missing += [] if prefix + name in OPTIONAL_FIELDS else [prefix + name]
-        elif isinstance(hints[name], type) and dataclasses.is_dataclass(hints[name]):
-            missing += _missing_fields(hints[name], d[name], f"{prefix}{name}.")
-    return missing
 
 
 def _to_tuple(value):

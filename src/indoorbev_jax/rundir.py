@@ -281,6 +281,11 @@ def read_json(path: Path):
         raise ValueError(f"{path}: not valid JSON ({e})") from None
 
 
+def read_config(path: Path) -> Config:
+    """The config a run recorded in ``path`` (its config.json); errors name the file."""
+    return Config.from_file_dict(read_json(path), path)
+
+
 def read_record(path: Path, fields: tuple[str, ...] = ()) -> dict:
     """``path``'s JSON object, holding ``fields``; anything else is a ValueError naming it."""
     record = read_json(path)
@@ -338,7 +343,7 @@ def check_resume(
                 "another workdir"
             )
         return
-    diff = config_diff(Config.from_file_dict(read_json(config_path), config_path), config)
+    diff = config_diff(read_config(config_path), config)
     lines = {k: f"  {k}: {a!r} -> {b!r}" for k, (a, b) in diff.items()}
     refused = [line for k, line in lines.items() if k not in RESUME_MAY_CHANGE]
     elsewhere = _elsewhere(kind)

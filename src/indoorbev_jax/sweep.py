@@ -27,6 +27,7 @@ from indoorbev_jax.rundir import (
     check_resume,
     check_run_kind,
     holds_workdir,
+    read_config,
     read_json,
     read_record,
     run_record,
@@ -152,7 +153,7 @@ def load_member(workdir, member: int) -> tuple[Config, Any]:
     workdir = Path(workdir)
     if not (workdir / "hypers.json").is_file():
         raise FileNotFoundError(f"{workdir}: not a sweep's workdir (no hypers.json)")
-    config = Config.from_file_dict(read_json(workdir / "config.json"), workdir / "config.json")
+    config = read_config(workdir / "config.json")
     settings = _read_hypers(workdir / "hypers.json", config.loss)
     k = len(settings["learning_rate"])
     if not 0 <= member < k:

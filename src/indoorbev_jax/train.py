@@ -47,7 +47,7 @@ from indoorbev_jax.rundir import (
     check_run_kind,
     holds_workdir,
     other_kind,
-    read_json,
+    read_config,
     run_record,
     write_text_atomic,
     writes_run_files,
@@ -623,7 +623,7 @@ def load_run(workdir: str | os.PathLike, which: str = "best") -> tuple[Config, A
             f"{workdir}: not a training run directory (no config.json); expected the --workdir "
             "of experiments/train.py"
         )
-    config = Config.from_file_dict(read_json(config_file), config_file)
+    config = read_config(config_file)
     if other_kind(workdir, "train"):
         raise ValueError(
             f"{workdir}: a sweep's workdir: its checkpoints hold K stacked models, which "
