@@ -71,6 +71,7 @@ def test_a_model_file_must_hold_its_configs_network(model_file, tmp_path):
     from flax import serialization
 
     good = serialization.msgpack_restore(model_file.read_bytes())
+    del good["sha256"]  # as files written before it: their contents are checked alone
     settings = json.loads(good["config"])
 
     def load(name, **changes):
@@ -107,6 +108,12 @@ def test_a_model_file_must_hold_its_configs_network(model_file, tmp_path):
     assert load("swapped", params=swapped) == (
         f"parameter {name} has shape {kernel.T.shape}, its config's model expects {kernel.shape}"
     )
+    halved = jax.tree_util.tree_map_with_path(
+        lambda p, x: x.astype(np.float16) if jax.tree_util.keystr(p) == name else x, params
+    )
+    assert load("halved", params=halved) == (
+        f"parameter {name} has dtype float16, its config's model expects float32"
+    )
     fewer = copy.deepcopy(params)
     del fewer["params"]["head"]
     assert re.fullmatch(
@@ -126,6 +133,47 @@ def test_a_model_file_must_hold_its_configs_network(model_file, tmp_path):
     older = tmp_path / "older.msgpack"
     older.write_bytes(serialization.msgpack_serialize({**good, "config": json.dumps(settings)}))
     assert P.load_model(older)[0] == CFG
+
+
+def test_a_model_file_is_checked_against_the_sha256_written_with_it(model_file, tmp_path):
+    """A byte flipped in a model file's parameters or config loaded as other weights or
+    settings, silently; the file now holds the sha256 of both, and a copy that does not
+    match it is refused, named."""
+    from flax import serialization
+
+    data = model_file.read_bytes()
+    stored = serialization.msgpack_restore(data)
+    assert re.fullmatch(r"[0-9a-f]{64}", stored["sha256"])
+    kernel = next(x for x in jax.tree.leaves(stored["params"]) if x.ndim == 2 and x.size >= 64)
+    at = data.find(kernel.tobytes())
+    assert at > 0 and data.find(kernel.tobytes(), at + 1) < 0
+    steps = b'"total_steps": '
+    assert data.count(steps) == 1
+    edits = {
+        "weight": (at + 4 * 10 + 1, 1),  # the second byte of the kernel's 11th float32
+        "config": (data.find(steps) + len(steps), 1),  # its first digit: 20 -> 30
+    }
+    for what, (offset, n) in edits.items():
+        damaged = bytearray(data)
+        damaged[offset : offset + n] = bytes(b ^ 0x01 for b in damaged[offset : offset + n])
+        path = tmp_path / f"{what}.msgpack"
+        path.write_bytes(bytes(damaged))
+        with pytest.raises(ValueError) as refused:
+            P.load_model(path)
+        assert str(refused.value) == (
+            f"{path}: its config and parameters do not match the sha256 written with them "
+            "(a damaged copy): copy or export the model again"
+        )
+        # Without the sha256 (an older file) the damage goes unseen: the flip is real.
+        unchecked = serialization.msgpack_restore(bytes(damaged))
+        del unchecked["sha256"]
+        path.write_bytes(serialization.msgpack_serialize(unchecked))
+        config, params = P.load_model(path)
+        differs = config != CFG or any(
+            not np.array_equal(a, b)
+            for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(stored["params"]), strict=True)
+        )
+        assert differs, what
 
 
 def test_write_bag_clears_only_its_own_leftovers(tmp_path):

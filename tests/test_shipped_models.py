@@ -25,3 +25,14 @@ def test_a_shipped_model_keeps_its_accuracy(name, ap50, pq):
     config = dataclasses.replace(config, inference=one_view)
     results = sim_eval.evaluate_sim(config, params, "test", 8, 8, progress=False).compute()
     assert results["ap"][0.5] >= ap50 and results["pq"] >= pq, (results["ap"], results["pq"])
+
+
+@pytest.mark.parametrize("name", ["indoorbev_small.msgpack", "indoorbev_small_tilted.msgpack"])
+def test_a_shipped_model_carries_the_sha256_of_its_contents(name):
+    """A damaged copy of a shipped model (a byte flipped in a download) is refused, not run
+    with other weights: the file holds the checksum ``load_model`` checks."""
+    from flax import serialization
+
+    payload = serialization.msgpack_restore((MODELS / name).read_bytes())
+    digest = predict._model_file_digest(payload["config"], payload["params"])
+    assert payload["sha256"] == digest

@@ -1022,10 +1022,13 @@ def test_with_pretrained_loads_a_model_file_and_names_mismatches(tmp_path):
     with pytest.raises(ValueError, match=r"trained.msgpack: parameter .* has shape"):
         T.train_and_evaluate(wider, tmp_path / "run", data=str(tmp_path), init_from=path)
 
-    # Partial load: a source with an extra array, one missing and one of another shape.
+    # Partial load: a source with an extra array, one missing, one of another shape and one
+    # of another dtype.
     src = jax.tree.map(np.asarray, trained)
     flat = {jax.tree_util.keystr(p): p for p, _ in jax.tree_util.tree_flatten_with_path(src)[0]}
-    missing, reshaped = sorted(flat)[0], sorted(flat)[-1]
+    missing, halved, reshaped = sorted(flat)[0], sorted(flat)[1], sorted(flat)[-1]
+    holder = _get(src, flat[halved])
+    holder[flat[halved][-1].key] = holder[flat[halved][-1].key].astype(np.float16)
     head = src["params"]["head"]
     head["lateral_extra"] = {"kernel": np.ones((3, 3), np.float32)}
     del _get(src, flat[missing])[flat[missing][-1].key]
@@ -1036,12 +1039,13 @@ def test_with_pretrained_loads_a_model_file_and_names_mismatches(tmp_path):
         T.with_pretrained(state, CFG, odd)
     part, report = T._load_pretrained(state, CFG, odd, strict=False)
     assert report["unused"] == ["['params']['head']['lateral_extra']['kernel']"]
-    assert [r.split(" ")[0] for r in report["fresh"]] == [missing, reshaped]
+    assert [r.split(" ")[0] for r in report["fresh"]] == [missing, halved, reshaped]
+    assert report["fresh"][1] == f"{halved} (dtype float16 != float32)"
     got = dict(jax.tree_util.tree_flatten_with_path(part.params)[0])
     fresh = dict(jax.tree_util.tree_flatten_with_path(state.params)[0])
     ref = dict(jax.tree_util.tree_flatten_with_path(trained)[0])
     for path_, leaf in got.items():
-        expect = fresh if jax.tree_util.keystr(path_) in (missing, reshaped) else ref
+        expect = fresh if jax.tree_util.keystr(path_) in (missing, halved, reshaped) else ref
         np.testing.assert_array_equal(np.asarray(leaf), np.asarray(expect[path_]))
     unrelated = jax.tree.map(lambda x: np.zeros((*np.shape(x), 2), np.float32), trained)
     unrelated = export_model(unrelated, CFG, tmp_path / "unrelated.msgpack")

@@ -98,14 +98,13 @@ def normalize_intensity(points: np.ndarray, factor: float) -> np.ndarray:
 
 
 def export_model(params: Any, config: Config, path: str | os.PathLike) -> Path:
-    """Writes config + parameters as one msgpack file (atomically)."""
+    """Writes config + parameters as one msgpack file (atomically), with the sha256 of both
+    (``load_model`` checks it)."""
     from flax import serialization
 
-    payload = {
-        "format": MODEL_FORMAT,
-        "config": config.to_json(),
-        "params": jax.tree.map(np.asarray, params),
-    }
+    text, params = config.to_json(), jax.tree.map(np.asarray, params)
+    payload = {"format": MODEL_FORMAT, "config": text, "params": params,
+               "sha256": _model_file_digest(text, params)}  # fmt: skip
     path = Path(path)
     data = serialization.msgpack_serialize(payload)
     fileio.atomic_write(path, lambda tmp: tmp.write_bytes(data))  # names path if it fails
@@ -115,10 +114,12 @@ def export_model(params: Any, config: Config, path: str | os.PathLike) -> Path:
 def load_model(path: str | os.PathLike, *, check: bool = True) -> tuple[Config, Any]:
     """(config, params) from a run directory or an exported model file.
 
-    A file's config must hold every field but ``config.OPTIONAL_FIELDS``, and its
-    parameters must be the tree of arrays that config's network has, name for name and
-    shape for shape (``check``; ``train.with_pretrained`` checks them against the run's
-    network instead), or a ``ValueError`` names the file and what differs.
+    A file's config and parameters must match the sha256 it was written with (files
+    written before ``export_model`` stored one have none), its config must hold every field
+    but ``config.OPTIONAL_FIELDS``, and its parameters must be the tree of arrays that
+    config's network has, name for name, shape for shape and dtype for dtype (``check``;
+    ``train.with_pretrained`` checks them against the run's network instead), or a
+    ``ValueError`` names the file and what differs.
     """
     from flax import serialization
 
@@ -143,6 +144,12 @@ def load_model(path: str | os.PathLike, *, check: bool = True) -> tuple[Config, 
             f"{path}: not an indoorbev_jax model file (expected a config text and a tree of "
             f"parameters, got {type(text).__name__} and {type(params).__name__})"
         )
+    # Files written before the checksum lack it; a flipped byte in theirs goes unseen.
+    if "sha256" in payload and payload["sha256"] != _model_file_digest(text, params):
+        raise ValueError(
+            f"{path}: its config and parameters do not match the sha256 written with them "
+            "(a damaged copy): copy or export the model again"
+        )
     try:
         settings = json.loads(text)
     except json.JSONDecodeError as e:
@@ -165,8 +172,8 @@ def param_shapes(config: Config) -> Any:
 
 def param_differences(have: Any, want: Any, whose: str) -> list[tuple[Any, str, str]]:
     """Where parameter tree ``have`` differs from ``want`` (arrays or shapes), in key path
-    order: (key path, kind "missing" / "extra" / "shape", the problem in words, saying
-    ``whose`` model ``want`` is)."""
+    order: (key path, kind "missing" / "extra" / "shape" / "dtype", the problem in words,
+    saying ``whose`` model ``want`` is)."""
     have = dict(jax.tree_util.tree_flatten_with_path(have)[0])
     want = dict(jax.tree_util.tree_flatten_with_path(want)[0])
     out = []
@@ -180,7 +187,16 @@ def param_differences(have: Any, want: Any, whose: str) -> list[tuple[Any, str, 
             shape = np.shape(have[path])
             problem = f"parameter {name} has shape {shape}, {whose} expects {want[path].shape}"
             out.append((path, "shape", problem))
+        elif _dtype(have[path]) != want[path].dtype:
+            # An int or float16 tree of the right shapes ran with truncated weights.
+            dtype = _dtype(have[path])
+            problem = f"parameter {name} has dtype {dtype}, {whose} expects {want[path].dtype}"
+            out.append((path, "dtype", problem))
     return out
+
+
+def _dtype(x: Any) -> np.dtype:
+    return np.dtype(x.dtype) if hasattr(x, "dtype") else np.asarray(x).dtype
 
 
 def with_thresholds(
@@ -562,11 +578,21 @@ def model_fingerprint(config: Config, params: Any) -> str:
     """sha256 of the config and every parameter's bytes: the same model, the same hash
     (``Config.stable_dict``: also the hash older versions gave it, so their runs resume)."""
     digest = hashlib.sha256(json.dumps(config.stable_dict(), indent=2).encode())
+    return _hash_params(digest, params).hexdigest()
+
+
+def _model_file_digest(text: str, params: Any) -> str:
+    """The sha256 a model file stores: of its config text as written and its parameters."""
+    return _hash_params(hashlib.sha256(text.encode()), params).hexdigest()
+
+
+def _hash_params(digest: Any, params: Any) -> Any:
+    """``digest`` updated with every parameter's key path, dtype, shape and bytes."""
     for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
         leaf = np.asarray(leaf)
         digest.update(f"{jax.tree_util.keystr(path)}{leaf.dtype}{leaf.shape}".encode())
         digest.update(np.ascontiguousarray(leaf).tobytes())
-    return digest.hexdigest()
+    return digest
 
 
 def _remove_stale_temporaries(out: Path, min_age: float = 60.0) -> None:

@@ -242,8 +242,11 @@ def _load_pretrained(
             report["unused"].append(name)
         elif kind == "missing":
             report["fresh"].append(f"{name} (missing)")
-        else:
+        elif kind == "shape":
             report["fresh"].append(f"{name} (shape {np.shape(have[path])} != {want[path].shape})")
+        else:
+            dtype = np.asarray(have[path]).dtype
+            report["fresh"].append(f"{name} (dtype {dtype} != {want[path].dtype})")
     matched = (want.keys() & have.keys()) - {path for path, *_ in differences}
     if not matched:
         raise ValueError(f"{source}: no parameter matches the run's model by name and shape")
