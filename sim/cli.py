@@ -41,6 +41,12 @@ def _config(args) -> Config:
     from indoorbev_jax.config import Config
 
     preset = args.preset
+    if preset is None and args.command == "show" and (Path(args.root) / "export.json").exists():
+        from indoorbev_jax.data.dataset import dataset_config
+
+        # The whole config it was exported with: its preset alone drew another grid's
+        # masks (an export with --set grid.x_range=...) 5 m off their boxes.
+        return dataset_config(args.root, None, args.set)[0]
     if preset is None:  # export and show: the preset the folder was exported with
         from indoorbev_sim.export import saved_preset
 
@@ -72,7 +78,13 @@ def _use_cache(path: str) -> None:
         return
     import jax
 
-    jax.config.update("jax_compilation_cache_dir", str(Path(path).expanduser()))
+    try:
+        folder = Path(path).expanduser()
+    except RuntimeError as e:  # ~nosuchuser/...
+        raise ValueError(f"--cache {path}: {e}") from None
+    if folder.exists() and not folder.is_dir():  # JAX warned and compiled every run again
+        raise ValueError(f"--cache {path}: a file, not a folder for compiled programs")
+    jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 

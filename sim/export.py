@@ -63,6 +63,12 @@ def scene_split(j: int) -> str:
     return "test" if j % 10 == 9 else "val" if j % 10 == 8 else "train"
 
 
+# Frame ids have six digits (KITTI's), so that their names sort as their numbers.
+MAX_FRAMES = 1_000_000
+# Longer pauses overflowed time.sleep after the first scene was written.
+MAX_THROTTLE = 3600.0
+
+
 def frame_id(index: int) -> str:
     return f"{index:06d}"
 
@@ -115,13 +121,23 @@ def _meta_diff(old: dict, new: dict, limit: int = 10) -> str:
     return "; ".join(rows[:limit] + more)
 
 
-def _check_meta(root: Path, meta: dict) -> None:
+def _check_meta(root: Path, meta: dict, write: bool = True) -> None:
+    """Refuses ``root`` unless it is new or holds an export of ``meta``'s settings, then
+    writes ``meta`` as its export.json (unless ``write`` is False: the refusals alone)."""
     path = root / "export.json"
     meta = json.loads(json.dumps(meta))  # tuples -> lists, as read back
+    where = root.resolve()
+    if where.name in _DATA_DIRS and (
+        _dataset_files(where.parent) or (where.parent / "export.json").exists()
+    ):
+        raise ExportError(
+            f"{root}: the {where.name}/ folder of the dataset {where.parent}, not a dataset "
+            "root (an export there broke that dataset); use another --out"
+        )
     if path.exists():
         try:
             old = json.loads(path.read_text())
-        except json.JSONDecodeError as e:
+        except ValueError as e:  # JSON, or not UTF-8 text
             raise ExportError(f"{path}: unreadable ({e}); remove it or use another --out") from e
         if not isinstance(old, dict):
             raise ExportError(f"{path}: not an export record (a JSON object); use another --out")
@@ -138,7 +154,8 @@ def _check_meta(root: Path, meta: dict) -> None:
                 f"{root}: holds {', '.join(held)} but no export.json, so not an export of "
                 "this command to resume; use another --out"
             )
-        fileio.atomic_write(path, lambda p: p.write_text(json.dumps(meta, indent=1)))
+        if write:
+            fileio.atomic_write(path, lambda p: p.write_text(json.dumps(meta, indent=1)))
 
 
 def _check_bag_place(bag: Path, root: Path) -> None:
@@ -233,32 +250,43 @@ def export(
         breath; the resume test uses it to kill an export midway).
 
     Raises:
-      ValueError: frames not a whole number > 0, seed not one in [0, 2**32), throttle not a
-        number >= 0, an empty ``out`` or ``rosbag`` (named); ``rosbag`` names an existing
+      ValueError: frames not a whole number in [1, MAX_FRAMES], seed not one in
+        [0, 2**32), throttle not a number in [0, MAX_THROTTLE], an empty ``out`` or
+        ``rosbag`` (named); ``rosbag`` names an existing
         path that is not a bag of this export (``BagError``, a ValueError); sim settings
         no scene can be drawn from (``scenes.check_settings``). All checked before any
         frame, and before export.json is written.
       ExportError: ``out`` is a file, holds an export with other settings, or dataset files
-        without export.json; ``rosbag`` overlaps ``out`` or cannot be created.
+        without export.json, or is a data folder of a dataset (its ``label_2/``, say);
+        ``rosbag`` overlaps ``out`` or cannot be created.
     """
     from indoorbev_sim.scenes import check_settings, held_out_note
     from tqdm import tqdm
 
-    check_whole("frames", frames, 1)
+    if check_whole("frames", frames, 1) > MAX_FRAMES:
+        raise ValueError(
+            f"frames: at most {MAX_FRAMES:,} (frame ids have six digits), got {frames!r}"
+        )
     check_seed("seed", seed)
     is_number = isinstance(throttle, int | float) and not isinstance(throttle, bool)
-    if not (is_number and math.isfinite(throttle) and throttle >= 0):
-        raise ValueError(f"throttle: must be a number of seconds >= 0, got {throttle!r}")
+    if not (is_number and 0 <= throttle <= MAX_THROTTLE):  # NaN fails both
+        raise ValueError(
+            f"throttle: must be a number of seconds in [0, {MAX_THROTTLE:g}], got {throttle!r}"
+        )
     root = check_folder("out", out, ExportError)
     if rosbag is not None:  # write_bag runs last: refuse a bad target before hours of frames
         _check_bag_place(check_folder("rosbag", rosbag, ExportError), root)
         check_bag_target(rosbag, (POINTS_TOPIC, OBJECTS_TOPIC))
     check_settings(config.sim)  # before export.json keeps settings that cannot run
     meta = {"seed": int(seed), "frames": int(frames), "config": config.stable_dict()}
-    _check_meta(root, meta)  # stable_dict: an export.json of an older version still matches
+    # stable_dict: an export.json of an older version still matches.
+    _check_meta(root, meta, write=False)
     # A second export into this folder is refused while one runs: both wrote every frame.
-    # Taken after the check, so that a refused export leaves the folder as it was.
+    # Taken after the refusals, so that a refused export leaves the folder as it was.
     with fileio.hold_folder(root, "export", "--out"):
+        # Again under the lock: two exports of other settings started together both found
+        # no export.json, and the one refused by the lock could leave its own there.
+        _check_meta(root, meta)
         started = time.time()
         _remove_stale_temporaries(root)
         t_len = config.sim.frames_per_sequence

@@ -68,8 +68,12 @@ def check_settings(rate, frames, topic, objects_topic, wait_subscribers, wait_ti
     check_whole("frames", frames, 0, " (0: unbounded)")
     check_topic_name(topic, "topic")
     check_topic_name(objects_topic, "objects_topic")
+    if topic == objects_topic:  # else rcl's "incompatible type" error, naming no flag
+        raise ValueError(f"objects_topic: {objects_topic!r} is the clouds' topic; give another")
     check_whole("wait_subscribers", wait_subscribers, 0)
     check_positive("wait_timeout", wait_timeout)
+    if not frame_id:  # RViz and tf cannot place a message of frame ""
+        raise ValueError("frame_id: an empty frame id; expected a tf frame name such as 'lidar'")
     if mount.rotated and not level_frame:
         raise ValueError(
             "--lidar-rpy publishes the clouds in the tilted lidar's frame and the ground "
@@ -144,7 +148,7 @@ def publish(
     )
     config = dataclasses.replace(config, sim=sim)
     runtime.require_rclpy()
-    if record:
+    if record is not None:  # "" is refused, not taken for no recording
         from indoorbev_jax.ros2.record import ensure_new
 
         ensure_new(record)
@@ -178,7 +182,7 @@ def publish(
                                             reliable)  # fmt: skip
         # Fully qualified names, after the node's namespace and remappings: the bag's.
         points_name, objects_name = pub_points.topic_name, pub_objects.topic_name
-        if record:
+        if record is not None:
             from indoorbev_jax.ros2.record import BagRecorder
 
             recorder = BagRecorder(record, {points_name: POINTCLOUD2, objects_name: MARKER_ARRAY},

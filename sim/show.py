@@ -26,6 +26,9 @@ def show(
 ) -> list[Path]:
     """Writes ``<out>/<id>.png`` for frames of the KITTI folder ``root`` (all by default)."""
     root, out = Path(root), check_folder("out", out)
+    if out.resolve() in {p.parent.resolve() for p in kitti.frame_paths(root, "0").values()}:
+        # Its pictures replaced the dataset's masks (mask_2/<id>.png), exit 0.
+        raise ValueError(f"--out {out}: a data folder of the dataset {root}; use another folder")
     ids = kitti.list_frames(root) if ids is None else ids
     missing = [fid for fid in ids if not kitti.frame_paths(root, fid)["points"].exists()]
     if missing:  # before the output folder is made

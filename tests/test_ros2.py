@@ -3,6 +3,7 @@
 import argparse
 import contextlib
 import dataclasses
+import importlib.util
 import math
 import os
 import queue
@@ -608,11 +609,21 @@ def test_node_settings_fail_before_the_node_starts(monkeypatch, capsys):
         ({"max_frames": -1}, "max_frames: expected a whole number >= 0"),
         ({"log_every": 0.0}, "log_every: expected seconds > 0"),
         ({"log_every": float("nan")}, "log_every: expected seconds > 0"),
+        # The node fed on its own detections (a PointCloud2), ~800 messages/s.
+        ({"topic": "/indoorbev/detections"}, "topic: '/indoorbev/detections' is one of the"),
+        ({"topic": "/r/markers", "out_ns": "/r/"}, "topic: '/r/markers' is one of the node"),
     ]:
         with pytest.raises(ValueError, match=match):
             detect.run_detect_node("no-such-model", **bad)
     with pytest.raises(RosUnavailable):  # good settings get as far as rclpy
         detect.run_detect_node("no-such-model", topic="~/points", out_ns="bev")
+    # --record "" (an unset shell variable) detected and recorded nothing, exit 0.
+    with pytest.raises(ValueError, match="record: an empty path; expected a new folder"):
+        ensure_new("")
+    monkeypatch.delitem(sys.modules, "rclpy")  # the None set above
+    if importlib.util.find_spec("rclpy") is not None:  # refused after require_rclpy
+        with pytest.raises(ValueError, match="record: an empty path"):
+            detect.run_detect_node("no-such-model", record="")
     # A trailing slash is no second one (a mutation audit: "/indoorbev/" refused passed).
     for ns, root in (("/indoorbev/", "/indoorbev"), ("/", ""), ("bev", "bev")):
         topics = detect.check_settings("/livox/lidar", ns, 5.0, 0)
@@ -625,6 +636,7 @@ def test_node_settings_fail_before_the_node_starts(monkeypatch, capsys):
         ({"wait_timeout": float("inf")}, "wait_timeout: expected seconds > 0"),
         ({"wait_timeout": 0.0}, "wait_timeout: expected seconds > 0"),
         ({"rate": 0.0}, "rate: expected frames per second > 0"),  # a ZeroDivisionError
+        ({"topic": "/same", "objects_topic": "/same"}, "objects_topic: '/same' is the clouds'"),
     ]:
         with pytest.raises(ValueError, match=match):
             publish(CFG, **bad)
@@ -713,6 +725,29 @@ def test_silence_hint_names_the_likely_qos_cause():
     assert silence_hint(3, 0, "/livox/lidar", False, 0, ["sensor_msgs/msg/LaserScan"]) is None
     mixed = silence_hint(0, 1, "/livox/lidar", False, 0, ["sensor_msgs/msg/LaserScan"])
     assert "best-effort" in mixed  # a PointCloud2 publisher too: QoS is still the likely cause
+
+
+def test_silence_is_explained_until_the_first_cloud_each_reason_once():
+    """The node checked once, 5 s after it was ready: a publisher of another type or a
+    driver that came up later was never named. Now every 5 s until a cloud arrives, each
+    new reason once."""
+    from indoorbev_jax.ros2.detect import SILENCE_S, SilenceWatch
+
+    asked = []
+
+    def hint(text):
+        return lambda: asked.append(text) or text
+
+    watch = SilenceWatch(100.0)
+    assert watch.due(100.0 + SILENCE_S - 0.1, 0, hint("early")) is None and asked == []
+    assert watch.due(100.0 + SILENCE_S, 0, hint(None)) is None  # nobody publishes yet
+    assert watch.due(100.0 + SILENCE_S + 1, 0, hint("x")) is None and asked == [None]
+    assert watch.due(100.0 + 2 * SILENCE_S, 0, hint("other type")) == "other type"
+    assert watch.due(100.0 + 3 * SILENCE_S, 0, hint("other type")) is None  # said already
+    assert watch.due(100.0 + 4 * SILENCE_S, 0, hint("best effort")) == "best effort"
+    assert watch.due(100.0 + 5 * SILENCE_S, 0, hint("other type")) == "other type"
+    assert watch.due(100.0 + 6 * SILENCE_S, 3, hint("late")) is None  # clouds arrive
+    assert asked == [None, "other type", "other type", "best effort", "other type"]
 
 
 def test_silence_hint_reads_the_graph_and_never_raises():
@@ -844,6 +879,9 @@ def test_unknown_ros_args_fail_first_in_one_line(capsys):
     from indoorbev_jax.ros2 import runtime
 
     runtime.check_ros_args(["-r", "points:=/livox/lidar"])  # a remapping is taken
+    # A remapping rcl cannot parse: "rclpy does not take failed to initialize rcl: ...".
+    with pytest.raises(ValueError, match=r"^--ros-args: rclpy does not take them \(failed to"):
+        runtime.check_ros_args(["-r", "bad"])
 
 
 def test_levelled_clouds_publish_in_the_level_frame(model, capsys):

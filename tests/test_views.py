@@ -391,3 +391,6 @@ def test_bad_views_are_named():
     assert parse_views("identity, mirror_y") == ("identity", "mirror_y")
     with pytest.raises(argparse.ArgumentTypeError, match="unknown view 'flip'"):
         parse_views("identity,flip")
+    # Refused here, not once the model has loaded (seconds later, in the detect node).
+    with pytest.raises(argparse.ArgumentTypeError, match="'identity,identity' repeats a view"):
+        parse_views("identity,identity")

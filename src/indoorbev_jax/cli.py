@@ -89,10 +89,18 @@ def seed_int(text: str) -> int:
 
 
 def _intensity_units(text: str) -> str | float:
+    """argparse type of ``--intensity``: checked here, not once the model has loaded."""
+    from indoorbev_jax.predict import check_intensity_units
+
     try:
-        return float(text)
+        units = float(text)
     except ValueError:
-        return text
+        units = text
+    try:
+        check_intensity_units(units)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return units
 
 
 def _add_intensity(parser: argparse.ArgumentParser) -> None:
@@ -115,6 +123,8 @@ def parse_views(text: str) -> tuple[str, ...]:
     if unknown:
         msg = f"unknown view {unknown[0]!r}, expected 'all' or names from {', '.join(VIEWS)}"
         raise argparse.ArgumentTypeError(msg)
+    if len(set(views)) != len(views):  # else refused only once the model has loaded
+        raise argparse.ArgumentTypeError(f"{text!r} repeats a view")
     return views
 
 

@@ -179,3 +179,28 @@ def test_the_preset_read_from_an_export_is_a_preset_or_none(tmp_path):
     for name, want in (("small", "small"), ("mine", None)):
         (tmp_path / "export.json").write_text(json.dumps({"config": {"name": name}}))
         assert saved_preset(tmp_path) == want
+
+
+def test_publish_refuses_an_empty_record_path_and_frame_id(tmp_path, capsys, monkeypatch):
+    """``--record ""`` (an unset shell variable) published and recorded nothing, exit 0;
+    ``--frame-id ""`` published messages RViz and tf cannot place."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["ros2", "publish", "--frames", "1", "--record", "", "--cache", ""]) == 2
+    err = capsys.readouterr().err
+    assert err == "indoorbev-sim: error: record: an empty path; expected a new folder for the bag\n"
+    assert main(["ros2", "publish", "--frames", "1", "--frame-id", "", "--cache", ""]) == 2
+    err = capsys.readouterr().err
+    assert "frame_id: an empty frame id; expected a tf frame name such as 'lidar'" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_cache_that_cannot_be_a_folder_is_named(tmp_path, capsys):
+    """A file as --cache: JAX warned and compiled every run again; ~nosuchuser said only
+    "Could not determine home directory."."""
+    a_file = tmp_path / "afile"
+    a_file.write_text("x")
+    argv = ["check", "--preset", "tiny", "--frames", "1", "--cache"]
+    assert main([*argv, str(a_file)]) == 2
+    assert f"--cache {a_file}: a file, not a folder" in capsys.readouterr().err
+    assert main([*argv, "~no_such_user_here/cache"]) == 2
+    assert "--cache ~no_such_user_here/cache: " in capsys.readouterr().err

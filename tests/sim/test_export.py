@@ -1,10 +1,12 @@
 """KITTI and ROS2-bag export: exact round trips, splits, and resuming after a kill."""
 
+import contextlib
 import dataclasses
 import fcntl
 import filecmp
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -360,6 +362,47 @@ def test_export_refuses_dataset_files_without_export_json(exported, tmp_path):
     assert _tree(copy) == before and _tree(pred) == before_pred  # nothing written
 
 
+def test_an_export_checks_the_settings_again_once_it_holds_the_folder(tmp_path, monkeypatch):
+    """Two exports of other seeds started together both found no export.json; the one
+    refused by the lock could leave its export.json over the other's frames (1 race in 10),
+    and a rerun of its seed resumed them. The settings are checked again under the lock."""
+    out = tmp_path / "ds"
+    hold = export_mod.fileio.hold_folder
+    other = {"seed": SEED + 1, "frames": 2, "config": CFG.stable_dict()}
+
+    @contextlib.contextmanager
+    def held_after_the_other(folder, *args):
+        with hold(folder, *args):
+            (out / "export.json").write_text(json.dumps(other))  # written while we waited
+            yield
+
+    monkeypatch.setattr(export_mod.fileio, "hold_folder", held_after_the_other)
+    with pytest.raises(export_mod.ExportError, match=rf"seed: {SEED + 1} \(saved\) vs {SEED}"):
+        export_mod.export(out, 2, SEED, CFG, progress=False)
+    assert sorted(p.name for p in out.iterdir()) == [".lock", "export.json"]
+
+
+def test_an_export_into_a_data_folder_of_a_dataset_is_refused(exported, tmp_path):
+    """``--out DS/label_2`` wrote split lists, export.json and frame folders into the
+    dataset's label folder, which then no longer read as a dataset."""
+    root, _, _ = exported
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    before = _tree(copy)
+    for sub in ("label_2", "velodyne", "mask_2"):
+        with pytest.raises(export_mod.ExportError) as refused:
+            export_mod.export(copy / sub, 2, SEED, CFG, progress=False)
+        assert str(refused.value) == (
+            f"{copy / sub}: the {sub}/ folder of the dataset {copy.resolve()}, not a dataset "
+            "root (an export there broke that dataset); use another --out"
+        )
+    (copy / "mask_2").rename(copy / "masks_moved")  # a data folder not made yet is one too
+    with pytest.raises(export_mod.ExportError, match="the mask_2/ folder of the dataset"):
+        export_mod.export(copy / "mask_2", 2, SEED, CFG, progress=False)
+    (copy / "masks_moved").rename(copy / "mask_2")
+    assert _tree(copy) == before
+
+
 def test_an_export_running_in_the_folder_refuses_a_second(exported, tmp_path):
     """Two exports into one folder both wrote every frame; the second is now refused,
     naming the first, and writes nothing."""
@@ -378,7 +421,7 @@ def test_an_export_running_in_the_folder_refuses_a_second(exported, tmp_path):
     assert (copy / ".lock").read_text() == f"export, pid {os.getpid()}\n"
 
 
-def test_bad_options_fail_before_any_frame(cache, tmp_path):
+def test_bad_options_fail_before_any_frame(cache, tmp_path, monkeypatch):
     not_a_bag = tmp_path / "notes"
     not_a_bag.mkdir()
     (not_a_bag / "readme.txt").write_text("not a bag")
@@ -387,14 +430,22 @@ def test_bad_options_fail_before_any_frame(cache, tmp_path):
         export_mod.export(out, 4, SEED, CFG, rosbag=not_a_bag, progress=False)
     assert not out.exists()
     assert [p.name for p in not_a_bag.iterdir()] == ["readme.txt"]
-    with pytest.raises(ValueError, match="throttle: must be a number of seconds >= 0, got -1"):
-        export_mod.export(out, 4, SEED, CFG, progress=False, throttle=-1)
-    with pytest.raises(ValueError, match="throttle: .* got 'x'"):
-        export_mod.export(out, 4, SEED, CFG, progress=False, throttle="x")
+    # 1e10 s overflowed time.sleep after the first scene was written.
+    for throttle in (-1, "x", float("nan"), 1e10, export_mod.MAX_THROTTLE + 1):
+        expected = rf"throttle: must be a number of seconds in \[0, 3600\], got {throttle!r}"
+        with pytest.raises(ValueError, match=expected):
+            export_mod.export(out, 4, SEED, CFG, progress=False, throttle=throttle)
     for frames in (0, 2.5, True):  # 2.5 used to end in a TypeError from range()
         expected = f"frames: expected a whole number > 0, got {frames!r}"
         with pytest.raises(ValueError, match=expected):
             export_mod.export(out, frames, SEED, CFG, progress=False)
+    # 10**20 frames: no message for minutes, then a MemoryError, export.json kept.
+    assert export_mod.frame_id(export_mod.MAX_FRAMES - 1) == "999999"
+    expected = "frames: at most 1,000,000 (frame ids have six digits), got 1000001"
+    with monkeypatch.context() as m, pytest.raises(ValueError, match=re.escape(expected)):
+        m.setattr(export_mod, "scene_fn", None)  # without the bound: a TypeError, no hang
+        export_mod.export(out, export_mod.MAX_FRAMES + 1, SEED, CFG, progress=False)
+    assert not out.exists()
     # jax.random.key folds seeds into 32 bits: 2**32 + 5 gave seed 5's frames.
     for seed in (2**32 + 5, -1, 2**63, True):
         with pytest.raises(ValueError, match=r"seed: expected a whole number in \[0, 2\*\*32\)"):
@@ -456,6 +507,9 @@ def test_settings_mismatch_names_each_field(exported, tmp_path):
     assert f"config.sim.range_noise: {CFG.sim.range_noise!r} (saved) vs 0.5 (given)" in msg
     assert f"seed: {SEED} (saved) vs {SEED + 1} (given)" in msg
     assert "frames" not in msg.split("other settings:")[1]  # only the fields that differ
+    (tmp_path / "export.json").write_bytes(b"\xff{}")  # not UTF-8: a message naming no file
+    with pytest.raises(export_mod.ExportError, match=r"export\.json: unreadable \('utf-8' codec"):
+        export_mod.export(tmp_path, FRAMES, SEED, CFG, progress=False)
 
 
 def test_a_long_settings_mismatch_names_seed_frames_and_preset_before_the_config():
@@ -556,6 +610,46 @@ def test_an_export_short_of_a_split_says_how_many_frames_give_every_split(cache,
     splits = {export_mod.scene_split(j) for j in range(math.ceil(n / per_scene))}
     fewer = {export_mod.scene_split(j) for j in range(math.ceil(n / per_scene) - 1)}
     assert splits == {"train", "val", "test"} and fewer != splits
+
+
+def test_show_draws_with_the_whole_config_of_export_json(exported, tmp_path, capsys):
+    """An export with --set grid.x_range=... was drawn with its preset's grid (the preset
+    alone was read from export.json): masks 5 m off their boxes, exit 0."""
+    root, _, _ = exported
+    shifted = tmp_path / "shifted"
+    shutil.copytree(root, shifted)
+    meta = json.loads((shifted / "export.json").read_text())
+    meta["config"]["grid"]["x_range"] = [v + 1.0 for v in meta["config"]["grid"]["x_range"]]
+    (shifted / "export.json").write_text(json.dumps(meta))
+    config = Config.from_dict(meta["config"])
+    assert config.grid.shape == CFG.grid.shape and config.grid != CFG.grid
+    fid = kitti.list_frames(shifted)[0]
+    assert main(["show", str(shifted), "--out", str(tmp_path / "cli"), "--ids", fid]) == 0
+    want = show.show(shifted, tmp_path / "want", config, [fid])[0].read_bytes()
+    preset = show.show(shifted, tmp_path / "preset", CFG, [fid])[0].read_bytes()
+    assert (tmp_path / "cli" / f"{fid}.png").read_bytes() == want != preset
+    # --set still applies over it, and --preset still replaces it.
+    argv = ["show", str(shifted), "--out", str(tmp_path / "set"), "--ids", fid]
+    assert main([*argv, "--set", f"grid.x_range={list(CFG.grid.x_range)}"]) == 0
+    assert (tmp_path / "set" / f"{fid}.png").read_bytes() == preset
+    argv = ["show", str(shifted), "--out", str(tmp_path / "tiny"), "--ids", fid]
+    assert main([*argv, "--preset", "tiny"]) == 0
+    assert (tmp_path / "tiny" / f"{fid}.png").read_bytes() == preset
+
+
+def test_show_refuses_to_write_into_the_datasets_own_folders(exported, tmp_path, capsys):
+    """``show DS --out DS/mask_2`` replaced the dataset's masks with RGB pictures, exit 0."""
+    root, _, _ = exported
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    before = _tree(copy)
+    fid = kitti.list_frames(copy)[0]
+    for sub in ("mask_2", "label_2", "velodyne"):
+        out = copy / sub
+        assert main(["show", str(copy), "--out", str(out), "--ids", fid, "--preset", "tiny"]) == 2
+        err = capsys.readouterr().err
+        assert f"--out {out}: a data folder of the dataset {copy}; use another folder" in err
+    assert _tree(copy) == before
 
 
 def test_show_refuses_a_missing_folder(tmp_path, capsys):

@@ -4,6 +4,7 @@ and the invariants the targets promise."""
 import dataclasses
 import math
 import types
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -605,3 +606,14 @@ def test_check_counts_objects_and_frames_per_class(frames):
     assert got == want
     assert (frames_with <= count).all() and (objects_ > frames_with).any()
     assert f"labelled objects: {objects_.sum()}," in out
+
+
+def test_check_says_n_a_when_no_object_has_points(frames, monkeypatch):
+    """No points on labelled objects (data.max_points=10) printed "0.00000" (read as a
+    failed check) and numpy's "Mean of empty slice" with a nan."""
+    monkeypatch.setattr(labels, "point_footprint_agreement", lambda *args: [])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = labels.check(CFG, B, B, 3)
+    assert "points inside own footprint dilated by 1 cell: n/a (no points on objects)" in out
+    assert "objects with >= 99% of their points inside: n/a\n" in out

@@ -22,6 +22,7 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -244,6 +245,11 @@ def check_settings(topic: str, out_ns: str, log_every: float, max_frames: int) -
     out_topics = {k: f"{out_ns.rstrip('/')}/{k}" for k in OUTPUTS}
     for t in out_topics.values():
         check_topic_name(t, "out_ns")
+    if topic in out_topics.values():  # the node fed on its own output, ~800 messages/s
+        raise ValueError(
+            f"topic: {topic!r} is one of the node's own outputs (out_ns {out_ns!r}); "
+            "subscribe to the lidar's cloud topic"
+        )
     check_positive("log_every", log_every)
     check_whole("max_frames", max_frames, 0, " (0: never)")
     return out_topics
@@ -293,6 +299,25 @@ def silence_hint(
         "large clouds (megabytes) are often lost whole over best-effort QoS, as one lost "
         "fragment drops the message: with a reliable publisher, --reliable subscribes reliably"
     )
+
+
+class SilenceWatch:
+    """Says, every ``SILENCE_S`` seconds until the first cloud arrives, why none arrives:
+    each reason once in a row (checked once, a driver that came up later, or a publisher
+    of another type, was never named)."""
+
+    def __init__(self, started: float):
+        self.next_check, self.last = started + SILENCE_S, None
+
+    def due(self, now: float, received: int, hint: Callable[[], str | None]) -> str | None:
+        """The hint to log now, if any; ``hint`` is called only when a check is due."""
+        if received or now < self.next_check:
+            return None
+        self.next_check = now + SILENCE_S
+        text = hint()
+        new = text if text != self.last else None
+        self.last = text
+        return new
 
 
 def _silence_hint(node, input_name: str, received: int, topic: str, reliable: bool):
@@ -358,7 +383,7 @@ def run_detect_node(
     check_level_frame(mount, level_frame)
     runtime.require_rclpy()
     runtime.check_ros_args(ros_args)
-    if record:  # before the slow warm-up
+    if record is not None:  # before the slow warm-up ('' refused, not taken for none)
         from indoorbev_jax.ros2.record import ensure_new
 
         ensure_new(record)
@@ -404,17 +429,19 @@ def run_detect_node(
     # recorder exist (the names are bound by then).
     def process_forever() -> None:
         last_log = time.monotonic()
-        silence_checked = False
+        silence = SilenceWatch(started)
         recording_stopped = False  # the writer failed: detection goes on unrecorded
         while not stop.is_set():
             if not wake.wait(0.1):
-                if not silence_checked and time.monotonic() - started > SILENCE_S:
-                    silence_checked = True
-                    with lock:
-                        received = stats.received
-                    hint = _silence_hint(node, bag_names["input"], received, topic, reliable)
-                    if hint:
-                        log.warning(hint)
+                with lock:
+                    received = stats.received
+                hint = silence.due(
+                    time.monotonic(),
+                    received,
+                    lambda: _silence_hint(node, bag_names["input"], 0, topic, reliable),
+                )
+                if hint:
+                    log.warning(hint)
                 continue
             with lock:
                 wake.clear()
@@ -474,7 +501,7 @@ def run_detect_node(
         # node's namespace and any remapping (what `ros2 bag record` would write).
         bag_names = {"input": subscription.topic_name}
         bag_names |= {k: publishers[k].topic_name for k in OUTPUTS}
-        if record:
+        if record is not None:
             from indoorbev_jax.ros2.record import BagRecorder
 
             bag_topics = {bag_names["input"]: POINTCLOUD2}

@@ -17,7 +17,10 @@ def ensure_new(path: str | os.PathLike) -> Path:
     """``path`` as a Path; a ``FileExistsError`` when something is there already, or when
     ``<path>.partial`` (an interrupted recording) is: it is the user's to keep or delete; an
     ``OSError`` naming ``path`` when ``<path>.partial`` cannot be made (its parent folders
-    are made, as the recording would)."""
+    are made, as the recording would); a ``ValueError`` for an empty path (an unset shell
+    variable: ``if record:`` took it for no recording, and recorded nothing)."""
+    if str(path) == "":
+        raise ValueError("record: an empty path; expected a new folder for the bag")
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path}: already exists; record into a new folder")

@@ -57,9 +57,10 @@ def _init_context(ros_args: list[str] | None):
     args = ["indoorbev", "--ros-args", *ros_args] if ros_args else None
     try:
         rclpy.init(args=args, context=context)
-    except RuntimeError as e:  # rclpy's UnknownROSArgsError
+    except RuntimeError as e:  # rclpy's UnknownROSArgsError, or rcl's parse error
+        what = str(e) if type(e).__name__ == "UnknownROSArgsError" else f"them ({e})"
         raise ValueError(
-            f"--ros-args: rclpy does not take {e}; expected remappings (from:=to), "
+            f"--ros-args: rclpy does not take {what}; expected remappings (from:=to), "
             f"-p name:=value, --log-level LEVEL or other ROS 2 arguments"
         ) from None
     return context
