@@ -39,7 +39,7 @@ import numpy as np
 
 from indoorbev_jax import fileio
 from indoorbev_jax.checks import check_folder, check_seed, check_whole
-from indoorbev_jax.config import Config, flatten_dict
+from indoorbev_jax.config import LATER_FIELDS, Config, flatten_dict
 from indoorbev_jax.data import kitti
 from indoorbev_jax.interrupts import check_interrupted
 from indoorbev_jax.rosbag import (
@@ -114,7 +114,12 @@ def _meta_diff(old: dict, new: dict, limit: int = 10) -> str:
     keys.sort(key=lambda k: (k.startswith("config.") and k != "config.name", k))
 
     def shown(d, k):
-        return repr(d[k]) if k in d else "(absent)"
+        if k in d:
+            return repr(d[k])
+        field = k.removeprefix("config.")
+        if k.startswith("config.") and field in LATER_FIELDS:  # stable_dict leaves it out
+            return f"{json.loads(json.dumps(LATER_FIELDS[field]))!r} (the default)"
+        return "(absent)"
 
     rows = [f"{k}: {shown(a, k)} (saved) vs {shown(b, k)} (given)" for k in keys]
     more = [f"and {len(rows) - limit} more fields"] if len(rows) > limit else []

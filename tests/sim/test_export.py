@@ -507,6 +507,18 @@ def test_settings_mismatch_names_each_field(exported, tmp_path):
     assert f"config.sim.range_noise: {CFG.sim.range_noise!r} (saved) vs 0.5 (given)" in msg
     assert f"seed: {SEED} (saved) vs {SEED + 1} (given)" in msg
     assert "frames" not in msg.split("other settings:")[1]  # only the fields that differ
+    # A field left at its default is not recorded (stable_dict): the default is shown, not
+    # "(absent)", which hid that the given value was [0, 0, 0].
+    tilted = dataclasses.replace(CFG, sim=dataclasses.replace(CFG.sim, sensor_rpy=(0, 20, 0)))
+    (tmp_path / "export.json").write_text(
+        json.dumps({"seed": SEED, "frames": FRAMES, "config": tilted.stable_dict()})
+    )
+    with pytest.raises(export_mod.ExportError) as e:
+        export_mod.export(tmp_path, FRAMES, SEED, CFG, progress=False)
+    assert str(e.value).endswith(
+        "other settings: config.sim.sensor_rpy: [0, 20, 0] (saved) vs [0.0, 0.0, 0.0] (the "
+        "default) (given); rerun with the saved settings to resume, or use another --out"
+    )
     (tmp_path / "export.json").write_bytes(b"\xff{}")  # not UTF-8: a message naming no file
     with pytest.raises(export_mod.ExportError, match=r"export\.json: unreadable \('utf-8' codec"):
         export_mod.export(tmp_path, FRAMES, SEED, CFG, progress=False)
