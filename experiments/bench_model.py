@@ -293,6 +293,8 @@ def main(argv=None):
         ap.error(f"--xla-vs expects NAME=VALUE, got {bad[0]!r}")
 
     peers = [] if a.only == "jax" or a.peer == "none" else a.peer.split(",")
+    if a.only == "torch" and not peers:  # timed nothing, exit 0
+        ap.error("--only torch with --peer none times nothing; name a peer up_mode")
     if unknown := [mode for mode in peers if mode not in PEER_UP_MODES]:
         ap.error(f"--peer: unknown up_mode {unknown[0]!r}; expected {', '.join(PEER_UP_MODES)}")
     # Refused before ours compiles (minutes for paper), not after.

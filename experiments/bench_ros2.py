@@ -27,6 +27,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import math
 import os
 import shutil
 import statistics
@@ -50,6 +51,7 @@ from indoorbev_jax.rosbag import POINTCLOUD2, cloud_msg, typestore
 from indoorbev_jax.train import init_state
 
 REPO = Path(__file__).resolve().parents[1]
+MAX_PHASE_CLOUDS = 1_000_000  # a day at 10 Hz is 864,000
 IN_TOPIC, OUT_TOPIC = "/bench/points", "/indoorbev/detections"
 
 
@@ -193,12 +195,13 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     counts = {
         "--latency-frames": args.latency_frames,
-        "--seconds x --rate": round(args.seconds * args.rate),
-        "--seconds x --max-rate": round(args.seconds * args.max_rate),
+        "--seconds x --rate": args.seconds * args.rate,
+        "--seconds x --max-rate": args.seconds * args.max_rate,
     }
     for flag, count in counts.items():
-        if count < 2:
-            parser.error(f"{flag} gives {count} clouds; a phase needs at least 2")
+        # An inf product ended in round()'s OverflowError.
+        if not (math.isfinite(count) and 2 <= round(count) <= MAX_PHASE_CLOUDS):
+            parser.error(f"{flag} gives {count:g} clouds; a phase needs 2 to {MAX_PHASE_CLOUDS:,}")
 
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))

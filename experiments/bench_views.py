@@ -24,7 +24,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from indoorbev_jax.cli import HelpFormatter, positive_int
+from indoorbev_jax.cli import HelpFormatter, positive_int, seed_int
 from indoorbev_jax.config import VIEWS, InferenceConfig
 from indoorbev_jax.inference import (
     apply_views,
@@ -59,7 +59,7 @@ def main(argv=None) -> None:
         default=3,
         help="rounds, each timing every view count in turn (their median)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulated held-out frame")
+    p.add_argument("--seed", type=seed_int, default=0, help="seed of the simulated held-out frame")
     args = p.parse_args(argv)
     try:
         config, params = load_model(args.model)

@@ -34,8 +34,11 @@ def _clouds(folders):
     rng = np.random.default_rng(0)
     if folders:
         for folder in folders:
-            for path in sorted(Path(folder, "velodyne").glob("*.bin")):
-                pts = kitti.read_points(path)
+            paths = sorted(Path(folder, "velodyne").glob("*.bin"))
+            if not paths:  # a typo counted "0 of 0", exit 0
+                raise ValueError(f"--folders {folder}: no velodyne/*.bin (an exported dataset)")
+            for path in paths:
+                pts = kitti.read_points(path)  # a bad file: DatasetError naming it
                 yield Path(folder).name, pts[:, :3], pts[:, 3]
         return
     from indoorbev_sim import patterns as P
@@ -61,8 +64,12 @@ def main(argv=None) -> None:
         help="exported datasets whose velodyne/*.bin to rewrite (default: box rooms)",
     )
     args = p.parse_args(argv)
+    try:
+        clouds = list(_clouds(args.folders))  # every file read before any count
+    except (OSError, ValueError) as e:
+        p.error(str(e))
     counts, missed = collections.Counter(), collections.Counter()
-    for name, xyz, intensity in _clouds(args.folders):
+    for name, xyz, intensity in clouds:
         n = len(xyz)
         four = np.c_[xyz, intensity].astype(np.float32).ravel()
         counts["genuine"] += 1

@@ -14,7 +14,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from indoorbev_jax import viz
+from indoorbev_jax import fileio, viz
+from indoorbev_jax.checks import check_folder
 from indoorbev_jax.cli import HelpFormatter, positive_int, seed_int
 from indoorbev_jax.config import Config
 from indoorbev_jax.data import kitti
@@ -58,6 +59,11 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     from indoorbev_sim.generate import jitted_generate
 
+    try:  # now, not after the simulation (a FileExistsError traceback)
+        out = check_folder("--out", args.out)
+        out.mkdir(parents=True, exist_ok=True)
+    except (OSError, ValueError) as e:
+        p.exit(2, f"demo.py: {e}\n")
     if args.model is not None and not Path(args.model).exists():  # a typo must not run untrained
         p.exit(2, f"demo.py: --model: no such file or folder: {args.model}\n")
     model = Path(args.model) if args.model is not None else SHIPPED
@@ -82,8 +88,6 @@ def main(argv=None) -> None:
 
     predictor = Predictor(config, params)
     evaluator = Evaluator(config.inference, class_names=config.data.class_names)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     names = config.data.class_names
     for k in range(args.frames):
         valid = np.asarray(batch.point_valid[k])
@@ -103,7 +107,8 @@ def main(argv=None) -> None:
         pic = render_prediction(config, padded, pvalid, output, bev, labels, ids)
         picture = viz.panels([("ground truth", truth), ("prediction", pic)])
         path = out / f"frame_{k}.png"
-        picture.save(path)
+        # A Ctrl-C mid-save left a cut PNG under its name.
+        fileio.atomic_write(path, lambda tmp, pic=picture: pic.save(tmp, format="PNG"))
         n_gt = int(np.asarray(batch.targets.valid[k]).sum())
         print(f"frame {k}: {len(points)} points, {n_gt} objects, {len(labels)} predicted, "
               f"{ms:.0f} ms -> {path}")  # fmt: skip

@@ -41,6 +41,7 @@ import itertools
 import math
 import sys
 import time
+from pathlib import Path
 
 from indoorbev_jax.checks import check_out_file, write_json
 from indoorbev_jax.cli import (
@@ -77,6 +78,20 @@ def _thresholds(text: str) -> tuple[float, ...]:
     except ValueError:
         msg = f"expected numbers separated by commas, got {text!r}"
         raise argparse.ArgumentTypeError(msg) from None
+
+
+def _sweep(text: str) -> tuple[float, ...]:
+    """argparse type of the threshold sweeps: ``_thresholds``, none repeated (a repeat was
+    evaluated twice, a second identical row)."""
+    values = _thresholds(text)
+    if len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(f"{text!r} repeats a value")
+    return values
+
+
+# The files of a run directory that a --json inside it must not replace.
+RUN_RECORDS = ("config.json", "run.json", "init_from.json", "hypers.json", "metrics.jsonl",
+               "sweep.jsonl")  # fmt: skip
 
 
 def sweep_table(rows: list[tuple[InferenceConfig, dict]]) -> str:
@@ -127,6 +142,10 @@ def check_frame_set(p: argparse.ArgumentParser, args: argparse.Namespace) -> Non
             check_out_file("--json", args.json)
         except (OSError, ValueError) as e:
             p.error(str(e))
+        # The metrics replaced the model file (rc 0), or a record of its run directory.
+        out, model = Path(args.json).resolve(), Path(args.model).resolve()
+        if out == model or (out.parent == model and out.name in RUN_RECORDS):
+            p.error(f"--json {args.json}: is the model's own file; expected a new file name")
 
 
 def main(argv=None) -> None:
@@ -135,13 +154,13 @@ def main(argv=None) -> None:
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument(
         "--score-threshold",
-        type=_thresholds,
+        type=_sweep,
         default=None,
         help="inference.score_threshold, or a comma list to sweep (default: the model's)",
     )
     p.add_argument(
         "--mask-threshold",
-        type=_thresholds,
+        type=_sweep,
         default=None,
         help="inference.mask_threshold, or a comma list to sweep (default: the model's)",
     )
@@ -193,10 +212,16 @@ def main(argv=None) -> None:
         "--view-iou", type=float, default=None, help="inference.view_iou (default: the model's)"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    args = p.parse_args(join_negative_values(argv))
+    # A negative first value read as an option ("expected one argument"), not as the value
+    # the range checks name.
+    negative = ("--lidar-rpy", "--score-threshold", "--mask-threshold", "--sensor-height",
+                "--z-offset")  # fmt: skip
+    args = p.parse_args(join_negative_values(argv, flags=negative))
     check_frame_set(p, args)
     if not 0 <= args.intensity_factor < math.inf:  # as predict's intensity_factor
         p.error(f"--intensity-factor: expected a finite number >= 0, got {args.intensity_factor}")
+    if not math.isfinite(args.z_offset):  # NaN: every object missed, exit 0
+        p.error(f"--z-offset: expected a finite number of metres, got {args.z_offset}")
     if args.seed is None:
         args.seed = default_seed(args.split)
     try:

@@ -55,16 +55,17 @@ def main(argv=None) -> None:
         config = with_overrides(config, args.set)
     except ConfigError as e:
         p.error(f"--set: {e}")  # one line, status 2, as its other refusals
-    config = dataclasses.replace(
-        config,
-        train=dataclasses.replace(
+    try:  # --learning-rate nan or -1: one line, not ConfigError's traceback
+        train = dataclasses.replace(
             config.train,
             augment=False,
             learning_rate=args.learning_rate,
             warmup_steps=min(20, args.steps),
             total_steps=max(args.steps, 10_000),  # ~flat after the warm-up
-        ),
-    )
+        )
+    except ConfigError as e:
+        p.error(f"--learning-rate: {e}")
+    config = dataclasses.replace(config, train=train)
     from indoorbev_sim import generate_batch
 
     batch = jax.jit(lambda k: generate_batch(k, config, "train"))(jax.random.key(args.seed))

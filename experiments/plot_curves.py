@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from indoorbev_jax import fileio
@@ -36,15 +37,32 @@ def read_log(run: Path) -> dict[str, list[dict]]:
         )
         raise ValueError(f"{path}: no such file: not a training run's workdir{sweep}")
     out: dict[str, list[dict]] = {"train": [], "eval": []}
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    lines = path.read_text().splitlines()
+    for n, line in enumerate(lines, 1):
         try:
             row = json.loads(line)
         except json.JSONDecodeError as e:
+            if n == len(lines):
+                # A kill mid-write (or a run still writing) leaves it; training drops it too.
+                print(f"plot_curves.py: warning: {path}:{n}: a torn last line, left out",
+                      file=sys.stderr)  # fmt: skip
+                break
             raise ValueError(f"{path}:{n}: not a JSON line ({e})") from None
-        if not isinstance(row, dict) or not isinstance(row.get("step", 0), int | float):
+        if not isinstance(row, dict) or not _is_number(row.get("step", 0)):
             raise ValueError(f"{path}:{n}: expected a JSON object with a numeric step")
-        out.setdefault(row.get("kind", "train"), []).append(row)
+        kind = row.get("kind", "train")
+        for key in (key for k, key, _ in PANELS if k == kind):
+            # A text value turned the panel's axis into categories, the curve upside down.
+            if row.get(key) is not None and not _is_number(row[key]):
+                raise ValueError(f"{path}:{n}: field {key!r}: expected a number, got {row[key]!r}")
+        out.setdefault(kind, []).append(row)
+    if not out["train"] and not out["eval"]:  # an empty picture, exit 0
+        raise ValueError(f"{path}: holds no train or eval line to plot")
     return out
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def run_labels(runs: list[Path]) -> list[str]:

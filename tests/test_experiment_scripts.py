@@ -35,6 +35,7 @@ def test_plot_curves_names_the_malformed_line(tmp_path):
     plot = _script("plot_curves")
     (tmp_path / "metrics.jsonl").write_text(
         '{"step": 50, "kind": "train", "loss": 3.0}\n{"step": 100, "kind": "train", "loss":\n'
+        '{"step": 150, "kind": "train", "loss": 2.0}\n'  # not the last: not a cut write
     )
     with pytest.raises(ValueError, match=r"metrics\.jsonl:2: not a JSON line"):
         plot.read_log(tmp_path)
@@ -156,6 +157,19 @@ def test_eval_sim_names_a_bad_model_and_an_out_of_range_threshold(tmp_path, caps
         eval_sim.main(["--model", str(path), "--mask-threshold", "0.5,2"])
     assert exit_info.value.code == 2
     assert "inference.mask_threshold': must lie in [0, 1]" in capsys.readouterr().err
+    # A negative first value was "expected one argument", naming no value.
+    for flag in ("--score-threshold", "--mask-threshold"):
+        with pytest.raises(SystemExit) as exit_info:
+            eval_sim.main(["--model", str(path), flag, "-0.1,0.5"])
+        assert exit_info.value.code == 2
+        assert f"{flag[2:].replace('-', '_')}': must lie in [0, 1], got -0.1" in (
+            capsys.readouterr().err
+        )
+    # A repeat was evaluated twice, an identical second row.
+    with pytest.raises(SystemExit) as exit_info:
+        eval_sim.main(["--model", str(path), "--score-threshold", "0.3,0.3,0.9"])
+    assert exit_info.value.code == 2
+    assert "argument --score-threshold: '0.3,0.3,0.9' repeats a value" in capsys.readouterr().err
     for bad, said in (("1,2,3", "expected HEIGHT or MIN,MAX, got 3 values"),
                       ("0.8,0.3", "sim.sensor_height': expected 0 <= min <= max"),
                       ("2.45", "sim.sensor_height: up to 2.45 m reaches the ceiling")):  # fmt: skip
@@ -528,6 +542,16 @@ def test_eval_sim_draws_its_first_batch_from_fold_in_of_the_seed(monkeypatch):
         ("overfit_check", ["--every", "0"], "argument --every: must be > 0, got 0"),
         ("overfit_check", ["--set", "train.augment=true"], "--set train.augment=true: the check"),
         ("eval_sim", ["--model", "m", "--intensity-factor", "-1"], "--intensity-factor: expected"),
+        # Before 2026-12-08: NaN missed every object (exit 0); a traceback after 15 s of
+        # simulation, or after the config was built; "0 of 0" for a folder of no clouds; a
+        # run that timed nothing; an OverflowError.
+        ("eval_sim", ["--model", "m", "--z-offset", "nan"], "--z-offset: expected a finite"),
+        ("demo", ["--out", str(REPO / "pyproject.toml")], "pyproject.toml: is a file; --out"),
+        ("overfit_check", ["--learning-rate", "nan"], "--learning-rate: config field 'train.l"),
+        ("column_check_sweep", ["--folders", str(REPO)], f"--folders {REPO}: no velodyne/*.bin"),
+        ("bench_model", ["--only", "torch", "--peer", "none"], "--only torch with --peer none"),
+        ("bench_views", ["--seed", "-1"], "argument --seed: expected a whole number in [0, 2**32)"),
+        ("bench_ros2", ["--seconds", "1e300", "--rate", "1e300"], "--rate gives inf clouds"),
         # Before 2026-12-07: a --json that cannot be written failed after the evaluation;
         # seeds past 32 bits scored seed s's frames under another name (or overflowed); a
         # file that is not a model, an unknown preset or field, an unwritable --out were
@@ -569,6 +593,40 @@ def test_scripts_refuse_arguments_they_cannot_run(script, argv, message, capsys)
         _script(script).main(argv)
     assert exit_info.value.code == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("script", ["eval_sim", "pose_errors"])
+def test_the_metrics_never_replace_the_model_they_score(script, tmp_path, capsys):
+    """``--json`` at the model file replaced it with the metrics, exit 0 (and a run's
+    config.json would have gone the same way)."""
+    model = tmp_path / "model.msgpack"
+    model.write_bytes(b"the model")
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text("{}")
+    for json_path, model_path in ((model, model), (run / "config.json", run)):
+        with pytest.raises(SystemExit) as exit_info:
+            _script(script).main(["--model", str(model_path), "--json", str(json_path)])
+        assert exit_info.value.code == 2
+        assert f"--json {json_path}: is the model's own file" in capsys.readouterr().err
+    assert model.read_bytes() == b"the model" and (run / "config.json").read_text() == "{}"
+
+
+def test_plot_curves_leaves_out_a_torn_last_line_and_refuses_text_or_nothing(tmp_path, capsys):
+    """A killed run's log (training drops its torn last line) could not be plotted; a text
+    loss drew its panel as categories, upside down; a log of no line drew empty panels."""
+    plot = _script("plot_curves")
+    log = tmp_path / "metrics.jsonl"
+    log.write_text('{"step": 50, "loss": 3.0}\n{"step": 100, "loss": 2.0}\n{"step": 150, "lo')
+    assert [r["step"] for r in plot.read_log(tmp_path)["train"]] == [50, 100]
+    assert f"warning: {log}:3: a torn last line, left out" in capsys.readouterr().err
+    log.write_text('{"step": 50, "loss": 3.0}\n{"step": 100, "loss": "abc"}\n')
+    with pytest.raises(ValueError, match=r"metrics\.jsonl:2: field 'loss': expected a number"):
+        plot.read_log(tmp_path)
+    for text in ("", '{"step": 5, "kind": "val", "pq": 0.5}\n'):
+        log.write_text(text)
+        with pytest.raises(ValueError, match=r"metrics\.jsonl: holds no train or eval line"):
+            plot.read_log(tmp_path)
 
 
 def test_bench_ros2_phase_with_one_answer_says_so(capsys, monkeypatch):
@@ -810,7 +868,7 @@ def test_benchmark_ratios_are_the_reference_over_ours_of_the_medians(capsys):
     assert low - 0.5 <= int(ratio[:-1]) <= high + 0.5, (ref_ms, ours_ms, ratio)
 
 
-def test_demo_scores_each_frame_against_its_own_ground_truth(tmp_path, capsys):
+def test_demo_scores_each_frame_against_its_own_ground_truth(tmp_path, capsys, monkeypatch):
     """``make demo`` on two frames: a picture per frame, and the metrics table counts the
     ground truth of both frames (the sum of the per-frame object counts it printed), not
     one frame's twice; without the table the demo would print no metrics at all (a mutation
@@ -825,6 +883,21 @@ def test_demo_scores_each_frame_against_its_own_ground_truth(tmp_path, capsys):
     assert "AP@0.5" in out
     mean = next(line.split() for line in out.splitlines() if line.startswith("mean "))
     assert int(mean[1]) == sum(counts)
+    # Pillow wrote under the picture's name: a Ctrl-C (or a full disk) mid-save left a cut
+    # PNG there. A rerun that fails in its first save leaves the earlier picture whole.
+    from PIL import Image
+
+    before = (tmp_path / "frame_0.png").read_bytes()
+
+    def full_disk(self, fp, format=None, **params):
+        Path(fp).write_bytes(b"\x89PNG partial")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Image.Image, "save", full_disk)
+    with pytest.raises(OSError, match=r"frame_0\.png: No space left"):
+        _script("demo").main(["--frames", "2", "--out", str(tmp_path)])
+    assert (tmp_path / "frame_0.png").read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frame_0.png", "frame_1.png"]
 
 
 def test_bench_matching_checks_matches_with_more_targets_than_queries():

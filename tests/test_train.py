@@ -1533,6 +1533,28 @@ def test_an_unreadable_or_foreign_best_checkpoint(tmp_path, caplog, monkeypatch)
         T.load_params(tmp_path)
 
 
+def test_sim_source_draws_step_s_from_fold_in_of_its_key_in_one_compile(monkeypatch):
+    """Batch s is ``generate_batch(fold_in(key, s))``, the fold_in inside the jit (it ran
+    eagerly before it, a dispatch of its own each step); a new step compiles nothing."""
+    import indoorbev_sim
+
+    calls = []
+
+    def fake_generate(key, config, split):  # the simulator's contract, cheap to compile
+        calls.append(split)
+        return jax.random.uniform(key, (3,))
+
+    monkeypatch.setattr(indoorbev_sim, "generate_batch", fake_generate)
+    key = jax.random.key(7)
+    source = sources.SimSource(CFG, key, "val")
+    got = [np.asarray(source(s)) for s in (0, 3, 3)]
+    want = [np.asarray(jax.random.uniform(jax.random.fold_in(key, s), (3,))) for s in (0, 3)]
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    np.testing.assert_array_equal(got[2], want[1])
+    assert calls == ["val"] and source._generate._cache_size() == 1
+
+
 def test_data_generation_and_the_train_step_trace_as_one_jit():
     """DESIGN 1: every stage is a pure function with static shapes, "so the whole train
     step, data generation included, can sit under one jax.jit". Lowered (traced, not

@@ -60,10 +60,13 @@ class SimSource:
         from indoorbev_sim import generate_batch
 
         self.key = key
-        self._generate = jax.jit(lambda k: generate_batch(k, config, split))
+        # fold_in inside the jit: one dispatch a batch, not an eager fold_in before it.
+        self._generate = jax.jit(
+            lambda k, step: generate_batch(jax.random.fold_in(k, step), config, split)
+        )
 
     def __call__(self, step: int) -> Batch:
-        return self._generate(jax.random.fold_in(self.key, step))
+        return self._generate(self.key, step)
 
 
 class KittiSource:
