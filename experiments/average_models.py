@@ -18,6 +18,7 @@ import math
 
 import jax
 
+from indoorbev_jax.checks import check_not_an_input
 from indoorbev_jax.cli import HelpFormatter, add_views_argument, join_negative_values, rpy_argument
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.predict import average_models, export_model, with_thresholds
@@ -50,6 +51,7 @@ def main(argv=None) -> None:
     )
     args = p.parse_args(join_negative_values(argv, flags=("--sensor-rpy",)))
     try:
+        check_not_an_input("--out", args.out, args.models)  # an input replaced, exit 0
         config, params = average_models(args.models, args.sensor_rpy)
         config = with_thresholds(config, args.score_threshold, args.mask_threshold, args.views)
     except (ValueError, FileNotFoundError, ConfigError) as e:

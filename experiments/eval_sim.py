@@ -41,9 +41,8 @@ import itertools
 import math
 import sys
 import time
-from pathlib import Path
 
-from indoorbev_jax.checks import check_out_file, write_json
+from indoorbev_jax.checks import check_not_an_input, check_out_file, write_json
 from indoorbev_jax.cli import (
     HelpFormatter,
     add_views_argument,
@@ -87,11 +86,6 @@ def _sweep(text: str) -> tuple[float, ...]:
     if len(set(values)) != len(values):
         raise argparse.ArgumentTypeError(f"{text!r} repeats a value")
     return values
-
-
-# The files of a run directory that a --json inside it must not replace.
-RUN_RECORDS = ("config.json", "run.json", "init_from.json", "hypers.json", "metrics.jsonl",
-               "sweep.jsonl")  # fmt: skip
 
 
 def sweep_table(rows: list[tuple[InferenceConfig, dict]]) -> str:
@@ -140,12 +134,9 @@ def check_frame_set(p: argparse.ArgumentParser, args: argparse.Namespace) -> Non
     if args.json is not None:
         try:
             check_out_file("--json", args.json)
+            check_not_an_input("--json", args.json, [args.model])
         except (OSError, ValueError) as e:
             p.error(str(e))
-        # The metrics replaced the model file (rc 0), or a record of its run directory.
-        out, model = Path(args.json).resolve(), Path(args.model).resolve()
-        if out == model or (out.parent == model and out.name in RUN_RECORDS):
-            p.error(f"--json {args.json}: is the model's own file; expected a new file name")
 
 
 def main(argv=None) -> None:

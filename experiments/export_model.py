@@ -15,6 +15,7 @@ from pathlib import Path
 
 import jax
 
+from indoorbev_jax.checks import check_not_an_input
 from indoorbev_jax.cli import HelpFormatter, add_views_argument
 from indoorbev_jax.config import ConfigError
 from indoorbev_jax.predict import export_model, load_model, with_thresholds
@@ -64,6 +65,9 @@ def main(argv=None) -> None:
         p.error("--which applies to a training run; a sweep member comes from its latest")
     args.which = args.which or "best"
     try:
+        # A run's config.json as --out was replaced by the model; the model file itself may
+        # be rewritten in place (new thresholds).
+        check_not_an_input("--out", args.out, [args.run], files=False)
         if args.member is not None:
             config, params = load_member(args.run, args.member)
         elif from_run:

@@ -78,6 +78,24 @@ def test_json_keeps_real_zeros_and_nulls_undefined_values(tmp_path, capsys):
                                               "sq": None, "frames": 3}  # fmt: skip
 
 
+def test_json_never_replaces_a_file_of_either_dataset(tmp_path, capsys):
+    """``--json GT/export.json`` replaced the record the next eval reads its config from,
+    exit 0; ``--json ""`` wrote nothing and said nothing."""
+    kitti.write_labels(tmp_path / "gt/label_2/a.txt", _labels([[-2.0, -2.0]]), NAMES)
+    kitti.write_labels(tmp_path / "pred/label_2/a.txt", _labels([[-2.0, -2.0]], [0.9]), NAMES)
+    (tmp_path / "gt/export.json").write_text("{}")
+    argv = ["eval", "--gt", str(tmp_path / "gt"), "--pred", str(tmp_path / "pred"), "--preset",
+            "tiny", "--json"]  # fmt: skip
+    for out in ("gt/export.json", "gt/train.txt", "pred/label_2/a.txt", "gt/mask_2/a.json"):
+        assert main([*argv, str(tmp_path / out)]) == 1
+        root = (tmp_path / out.split("/")[0]).resolve()
+        assert f"--json {tmp_path / out}: a file of the dataset {root}" in capsys.readouterr().err
+    assert (tmp_path / "gt/export.json").read_text() == "{}"
+    assert main([*argv, ""]) == 1
+    assert "--json: an empty path; expected a file name" in capsys.readouterr().err
+    assert main([*argv, str(tmp_path / "gt" / "metrics.json")]) == 0  # beside them is fine
+
+
 def test_an_empty_ground_truth_folder_is_named(tmp_path, capsys):
     """Without --split the frames are <gt>/label_2's files: the messages name that folder."""
     (tmp_path / "gt/label_2").mkdir(parents=True)

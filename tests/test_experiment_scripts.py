@@ -608,8 +608,32 @@ def test_the_metrics_never_replace_the_model_they_score(script, tmp_path, capsys
         with pytest.raises(SystemExit) as exit_info:
             _script(script).main(["--model", str(model_path), "--json", str(json_path)])
         assert exit_info.value.code == 2
-        assert f"--json {json_path}: is the model's own file" in capsys.readouterr().err
+        assert f"--json {json_path}: is a file of the model {model_path}" in capsys.readouterr().err
     assert model.read_bytes() == b"the model" and (run / "config.json").read_text() == "{}"
+
+
+def test_exports_never_replace_their_inputs(tmp_path, capsys):
+    """``export_model.py RUN --out RUN/config.json`` and ``average_models.py a b --out a``
+    replaced what they read, exit 0; a model file exported in place (new thresholds) is
+    still fine."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text("{}")
+    a, b = tmp_path / "a.msgpack", tmp_path / "b.msgpack"
+    a.write_bytes(b"a")
+    b.write_bytes(b"b")
+    for script, argv, given in [
+        ("export_model", [str(run), "--out", str(run / "config.json")], run),
+        ("average_models", [str(a), str(b), "--out", str(b)], b),
+    ]:
+        with pytest.raises(SystemExit) as exit_info:
+            _script(script).main(argv)
+        assert exit_info.value.code == 2
+        assert f"--out {argv[-1]}: is a file of the model {given}" in capsys.readouterr().err
+    assert (run / "config.json").read_text() == "{}" and b.read_bytes() == b"b"
+    with pytest.raises(SystemExit) as exit_info:  # in place: refused only as not a model
+        _script("export_model").main([str(a), "--out", str(a)])
+    assert "not an indoorbev_jax model file" in capsys.readouterr().err
 
 
 def test_plot_curves_leaves_out_a_torn_last_line_and_refuses_text_or_nothing(tmp_path, capsys):

@@ -973,6 +973,24 @@ def test_recording_names_the_topics_as_resolved(model, tmp_path, monkeypatch):
     assert set(read_bag(bag)) == {"/robot1/points"} | {f"/robot1/indoorbev/{k}" for k in OUTPUTS}
 
 
+def test_a_topic_that_resolves_to_an_output_is_refused(model, monkeypatch):
+    """A relative ``--topic indoorbev/detections`` passed the check of the names as given
+    and fed the node its own detections; the resolved names are compared too."""
+    pytest.importorskip("rclpy", reason="the ros extra is not installed (pip install -e .[ros])")
+    from indoorbev_jax.ros2 import runtime
+    from indoorbev_jax.ros2.detect import run_detect_node
+
+    def spin(*args):  # reached only when the topic was taken: fail, do not wait for clouds
+        raise AssertionError("the node started on its own output")
+
+    monkeypatch.setattr(runtime, "spin", spin)
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    expected = (r"topic: 'indoorbev/detections' resolves to /indoorbev/detections, one of "
+                r"the node's own outputs")  # fmt: skip
+    with pytest.raises(ValueError, match=expected):
+        run_detect_node(str(model[0]), topic="indoorbev/detections", max_frames=1)
+
+
 def _failing_writer(monkeypatch, after: int):
     """rosbags' Writer.write raises ENOSPC (a full disk) after ``after`` messages."""
     from rosbags.rosbag2 import Writer

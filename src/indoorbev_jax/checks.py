@@ -80,6 +80,22 @@ def check_out_file(flag: str, path) -> Path:
     return path
 
 
+# The records of a run directory that an output written into it must not replace.
+RUN_RECORDS = ("config.json", "run.json", "init_from.json", "hypers.json", "metrics.jsonl",
+               "sweep.jsonl")  # fmt: skip
+
+
+def check_not_an_input(flag: str, out, inputs, *, files: bool = True) -> None:
+    """Raises ``ValueError`` when the output ``out`` given by ``flag`` would replace one of
+    the model ``inputs`` (when ``files``) or a record of an input run directory (a --json
+    at the model file replaced it with the metrics, exit 0)."""
+    target = Path(out).resolve()
+    for given in inputs:
+        source = Path(given).resolve()
+        if (files and target == source) or (target.parent == source and target.name in RUN_RECORDS):
+            raise ValueError(f"{flag} {out}: is a file of the model {given}; expected a new file")
+
+
 def write_json(path, payload, indent: int = 2) -> None:
     """``payload`` as JSON in ``path``, atomically (``fileio.atomic_write``)."""
     text = json.dumps(payload, indent=indent) + "\n"

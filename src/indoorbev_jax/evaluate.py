@@ -223,6 +223,22 @@ def report(
     return "\n".join(text), payload
 
 
+def check_dataset_file(flag: str, out, roots) -> None:
+    """Raises ``ValueError`` when the output ``out`` would replace a file of one of the
+    dataset folders ``roots``: its export.json or predict.json, a split list, or a frame
+    file (a --json GT/export.json replaced the record the next eval reads its config from)."""
+    from indoorbev_jax.data import kitti
+
+    target = Path(out).resolve()
+    for root in (Path(r).resolve() for r in roots):
+        records = target.parent == root and (
+            target.name in ("export.json", "predict.json") or target.suffix == ".txt"
+        )
+        folders = {p.parent for p in kitti.frame_paths(root, "0").values()}
+        if records or target.parent in folders:
+            raise ValueError(f"{flag} {out}: a file of the dataset {root}; expected a new file")
+
+
 def eval_command(args: argparse.Namespace) -> int:
     """Entry point of ``indoorbev eval``: prints ``report``'s text, optionally writes its JSON."""
     from indoorbev_jax.config import ConfigError
@@ -231,17 +247,18 @@ def eval_command(args: argparse.Namespace) -> int:
 
     try:
         config, source = dataset_config(args.gt, args.preset, args.set)
-        if args.json:  # a bad path fails now, not after the whole evaluation
-            check_out_file("--json", args.json)
+        if args.json is not None:  # a bad path fails now, not after the whole evaluation
+            check_out_file("--json", args.json)  # "" too: it wrote nothing, silently
+            check_dataset_file("--json", args.json, [args.gt, args.pred])
         notes: list[str] = []
         evaluator = folder_evaluator(args.gt, args.pred, config, args.split, notes)
-    except (kitti.DatasetError, OSError) as e:
-        # stderr: `indoorbev eval GT PRED > metrics.txt` must still show it
-        print(f"indoorbev eval: error: {e}", file=sys.stderr)
-        return 1
     except ConfigError as e:  # a bad --set or --preset: a usage error, as in train.py
         print(f"indoorbev eval: error: {e}", file=sys.stderr)
         return 2
+    except (kitti.DatasetError, OSError, ValueError) as e:  # ValueError: a bad --json
+        # stderr: `indoorbev eval GT PRED > metrics.txt` must still show it
+        print(f"indoorbev eval: error: {e}", file=sys.stderr)
+        return 1
     text, payload = report(evaluator, config.data.class_names)
     print(f"ground truth {args.gt}, predictions {args.pred} ({source})")
     if args.split is None:  # with a split, the other splits' predictions are expected
@@ -252,7 +269,7 @@ def eval_command(args: argparse.Namespace) -> int:
     for note in notes:
         print(note)
     print(text)
-    if args.json:
+    if args.json is not None:
         write_json(args.json, payload)
         print(f"metrics written to {args.json}")
     return 0

@@ -204,11 +204,11 @@ def with_pretrained(
 
     ``source`` is a run directory or an exported model file (``predict.load_model``). Its grid
     and class names must equal the run's. With ``strict`` its parameter tree must match name
-    for name and shape for shape; the error names the first difference. Without it, every
-    parameter the two share by name and shape is loaded, the rest keep ``state``'s fresh
-    values and the source's extra ones are dropped (``train_and_evaluate`` logs both lists and
-    keeps them in ``init_from.json``), e.g. to start the paper-mode upsampler
-    (``head.upsampler_skips=false``) from a model with skips.
+    for name, shape for shape and dtype for dtype; the error names the first difference.
+    Without it, every parameter the two share by name, shape and dtype is loaded, the rest
+    keep ``state``'s fresh values and the source's extra ones are dropped
+    (``train_and_evaluate`` logs both lists and keeps them in ``init_from.json``), e.g. to
+    start the paper-mode upsampler (``head.upsampler_skips=false``) from a model with skips.
     """
     return _load_pretrained(state, config, source, strict)[0]
 
@@ -249,7 +249,7 @@ def _load_pretrained(
             report["fresh"].append(f"{name} (dtype {dtype} != {want[path].dtype})")
     matched = (want.keys() & have.keys()) - {path for path, *_ in differences}
     if not matched:
-        raise ValueError(f"{source}: no parameter matches the run's model by name and shape")
+        raise ValueError(f"{source}: no parameter matches the run's model by name, shape and dtype")
     loaded = [
         jnp.asarray(have[path], leaf.dtype) if path in matched else leaf for path, leaf in leaves
     ]

@@ -501,6 +501,11 @@ def run_detect_node(
         # node's namespace and any remapping (what `ros2 bag record` would write).
         bag_names = {"input": subscription.topic_name}
         bag_names |= {k: publishers[k].topic_name for k in OUTPUTS}
+        if bag_names["input"] in {bag_names[k] for k in OUTPUTS}:  # relative, or remapped
+            raise ValueError(
+                f"topic: {topic!r} resolves to {bag_names['input']}, one of the node's own "
+                "outputs; subscribe to the lidar's cloud topic"
+            )
         if record is not None:
             from indoorbev_jax.ros2.record import BagRecorder
 
