@@ -55,6 +55,30 @@ def _clouds(folders):
                     yield f"{name} {2 * room[0]:g} x {2 * room[1]:g} m", xyz, intensity
 
 
+def _tally(counts, missed, name: str, xyz: np.ndarray, intensity: np.ndarray) -> None:
+    """Counts whether the column check reads one cloud right, and refuses it with 3 or 5
+    columns (an emitter, ring or time fifth)."""
+    n = len(xyz)
+    four = np.c_[xyz, intensity].astype(np.float32).ravel()
+    counts["genuine"] += 1
+    counts["genuine read"] += kitti._other_column_count(four) is None
+    fifths = {
+        "emitter": np.arange(n) % 4,
+        "ring": np.arange(n) % 16,
+        "time": np.arange(n) * 5e-6,
+    }
+    cases = [("3 columns", xyz)] + [(f"5 columns ({k})", np.c_[xyz, intensity, v])
+                                    for k, v in fifths.items()]  # fmt: skip
+    for case, points in cases:
+        words = points.astype(np.float32).ravel()
+        words = words[: words.size // 4 * 4]
+        got = kitti._other_column_count(words)
+        cols = points.shape[1]
+        counts[case] += 1
+        counts[f"{case} refused"] += got is not None and got[0] == cols
+        missed[(case, name)] += got is None or got[0] != cols
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     p.add_argument(
@@ -64,31 +88,12 @@ def main(argv=None) -> None:
         help="exported datasets whose velodyne/*.bin to rewrite (default: box rooms)",
     )
     args = p.parse_args(argv)
-    try:
-        clouds = list(_clouds(args.folders))  # every file read before any count
+    counts, missed = collections.Counter(), collections.Counter()
+    try:  # a folder of no clouds, a bad file: named; the clouds read one at a time
+        for name, xyz, intensity in _clouds(args.folders):
+            _tally(counts, missed, name, xyz, intensity)
     except (OSError, ValueError) as e:
         p.error(str(e))
-    counts, missed = collections.Counter(), collections.Counter()
-    for name, xyz, intensity in clouds:
-        n = len(xyz)
-        four = np.c_[xyz, intensity].astype(np.float32).ravel()
-        counts["genuine"] += 1
-        counts["genuine read"] += kitti._other_column_count(four) is None
-        fifths = {
-            "emitter": np.arange(n) % 4,
-            "ring": np.arange(n) % 16,
-            "time": np.arange(n) * 5e-6,
-        }
-        cases = [("3 columns", xyz)] + [(f"5 columns ({k})", np.c_[xyz, intensity, v])
-                                        for k, v in fifths.items()]  # fmt: skip
-        for case, points in cases:
-            words = points.astype(np.float32).ravel()
-            words = words[: words.size // 4 * 4]
-            got = kitti._other_column_count(words)
-            cols = points.shape[1]
-            counts[case] += 1
-            counts[f"{case} refused"] += got is not None and got[0] == cols
-            missed[(case, name)] += got is None or got[0] != cols
     print(f"genuine 4-column clouds read: {counts['genuine read']} of {counts['genuine']}")
     for case in ("3 columns", "5 columns (emitter)", "5 columns (ring)", "5 columns (time)"):
         print(f"{case} refused: {counts[case + ' refused']} of {counts[case]}")

@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from indoorbev_jax.checks import check_folder
 from indoorbev_jax.cli import (
     HelpFormatter,
     RawHelpFormatter,
@@ -47,10 +48,10 @@ def _config(args) -> Config:
         # The whole config it was exported with: its preset alone drew another grid's
         # masks (an export with --set grid.x_range=...) 5 m off their boxes.
         return dataset_config(args.root, None, args.set)[0]
-    if preset is None:  # export and show: the preset the folder was exported with
+    if preset is None:  # export: the preset of the folder it resumes; show: no export.json
         from indoorbev_sim.export import saved_preset
 
-        preset = saved_preset(args.out if args.command == "export" else args.root) or "paper"
+        preset = (saved_preset(args.out) if args.command == "export" else None) or "paper"
     cfg = Config.preset(preset)
     if getattr(args, "set", None):
         from indoorbev_jax.config import with_overrides
@@ -82,8 +83,7 @@ def _use_cache(path: str) -> None:
         folder = Path(path).expanduser()
     except RuntimeError as e:  # ~nosuchuser/...
         raise ValueError(f"--cache {path}: {e}") from None
-    if folder.exists() and not folder.is_dir():  # JAX warned and compiled every run again
-        raise ValueError(f"--cache {path}: a file, not a folder for compiled programs")
+    check_folder("--cache", folder)  # a file: JAX warned and compiled every run again
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 

@@ -132,7 +132,7 @@ def _check_meta(root: Path, meta: dict, write: bool = True) -> None:
     path = root / "export.json"
     meta = json.loads(json.dumps(meta))  # tuples -> lists, as read back
     where = root.resolve()
-    if where.name in _DATA_DIRS and (
+    if where in kitti.frame_folders(where.parent) and (
         _dataset_files(where.parent) or (where.parent / "export.json").exists()
     ):
         raise ExportError(

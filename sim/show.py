@@ -26,7 +26,7 @@ def show(
 ) -> list[Path]:
     """Writes ``<out>/<id>.png`` for frames of the KITTI folder ``root`` (all by default)."""
     root, out = Path(root), check_folder("out", out)
-    if out.resolve() in {p.parent.resolve() for p in kitti.frame_paths(root, "0").values()}:
+    if out.resolve() in kitti.frame_folders(root):
         # Its pictures replaced the dataset's masks (mask_2/<id>.png), exit 0.
         raise ValueError(f"--out {out}: a data folder of the dataset {root}; use another folder")
     ids = kitti.list_frames(root) if ids is None else ids

@@ -636,6 +636,16 @@ def test_exports_never_replace_their_inputs(tmp_path, capsys):
     assert "not an indoorbev_jax model file" in capsys.readouterr().err
 
 
+def test_column_check_sweep_names_a_bad_cloud(tmp_path, capsys):
+    """A cloud file of a size no point layout has ended in a DatasetError traceback."""
+    (tmp_path / "velodyne").mkdir()
+    (tmp_path / "velodyne" / "000000.bin").write_bytes(b"abcdefg")
+    with pytest.raises(SystemExit) as exit_info:
+        _script("column_check_sweep").main(["--folders", str(tmp_path)])
+    assert exit_info.value.code == 2
+    assert "000000.bin: size 7 bytes is not a multiple of 16" in capsys.readouterr().err
+
+
 def test_plot_curves_leaves_out_a_torn_last_line_and_refuses_text_or_nothing(tmp_path, capsys):
     """A killed run's log (training drops its torn last line) could not be plotted; a text
     loss drew its panel as categories, upside down; a log of no line drew empty panels."""

@@ -234,8 +234,7 @@ def check_dataset_file(flag: str, out, roots) -> None:
         records = target.parent == root and (
             target.name in ("export.json", "predict.json") or target.suffix == ".txt"
         )
-        folders = {p.parent for p in kitti.frame_paths(root, "0").values()}
-        if records or target.parent in folders:
+        if records or target.parent in kitti.frame_folders(root):
             raise ValueError(f"{flag} {out}: a file of the dataset {root}; expected a new file")
 
 

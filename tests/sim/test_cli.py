@@ -201,6 +201,8 @@ def test_a_cache_that_cannot_be_a_folder_is_named(tmp_path, capsys):
     a_file.write_text("x")
     argv = ["check", "--preset", "tiny", "--frames", "1", "--cache"]
     assert main([*argv, str(a_file)]) == 2
-    assert f"--cache {a_file}: a file, not a folder" in capsys.readouterr().err
+    assert f"indoorbev-sim: error: {a_file}: is a file; --cache must be a folder" in (
+        capsys.readouterr().err
+    )
     assert main([*argv, "~no_such_user_here/cache"]) == 2
     assert "--cache ~no_such_user_here/cache: " in capsys.readouterr().err

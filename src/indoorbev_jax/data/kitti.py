@@ -466,6 +466,12 @@ def frame_paths(root: str | os.PathLike, frame_id: str) -> dict[str, Path]:
     }
 
 
+def frame_folders(root: str | os.PathLike) -> set[Path]:
+    """The folders of a dataset ``root`` that hold its frame files (resolved), which an
+    output must not be written into."""
+    return {path.parent.resolve() for path in frame_paths(root, "0").values()}
+
+
 def write_frame(
     root: str | os.PathLike,
     frame_id: str,
