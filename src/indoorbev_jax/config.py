@@ -60,6 +60,9 @@ VIEWS: dict[str, tuple[tuple[int, int], tuple[int, int]]] = {
 }
 
 
+MAX_RAYS = 1 << 22  # sim.num_rays per frame: 32 OS-128 frames
+
+
 class ConfigError(ValueError):
     """A configuration field holds a value that cannot work; the message names the field."""
 
@@ -687,6 +690,9 @@ class SimConfig:
         patterns = ("mid360", "vlp16", "os128", "grid")
         if self.pattern not in patterns:
             _fail("sim.pattern", f"expected one of {patterns}, got {self.pattern!r}")
+        if self.num_rays > MAX_RAYS:  # larger ran out of memory with a message naming no field
+            _fail("sim.num_rays", f"at most {MAX_RAYS:,} rays per frame (an OS-128 frame casts "
+                  f"131,072, a MID-360 one 20,000), got {self.num_rays:,}")  # fmt: skip
         if self.num_rays % {"mid360": 4, "vlp16": 16, "os128": 128, "grid": 32}[self.pattern]:
             _fail("sim.num_rays", f"must be a multiple of the beams of '{self.pattern}'")
         kinds = ("office", "lab", "corridor", "hall")

@@ -202,6 +202,9 @@ def test_sim_config_validation_names_fields():
         SimConfig(slots_per_class=(1, 2))
     with pytest.raises(ConfigError, match="sim.num_rays"):
         SimConfig(pattern="os128", num_rays=1000)
+    with pytest.raises(ConfigError, match=r"'sim.num_rays': at most 4,194,304 rays .* 4,194,308"):
+        SimConfig(num_rays=(1 << 22) + 4)
+    assert SimConfig(num_rays=1 << 22).num_rays == 4_194_304
     with pytest.raises(ConfigError, match="sim.dropout"):
         SimConfig(dropout=1.5)
     with pytest.raises(ValueError, match="sim.test_variants"):
