@@ -174,6 +174,16 @@ def test_a_model_file_is_checked_against_the_sha256_written_with_it(model_file, 
             for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(stored["params"]), strict=True)
         )
         assert differs, what
+    # A flip in the key's own name must not read as an older file without a checksum.
+    assert data.count(b"sha256") == 1
+    path = tmp_path / "key.msgpack"
+    path.write_bytes(data.replace(b"sha256", b"sha2T6"))
+    with pytest.raises(ValueError) as refused:
+        P.load_model(path)
+    assert str(refused.value) == (
+        f"{path}: unexpected field(s) 'sha2T6', expected only format, config, params, sha256 "
+        "(a damaged copy, or a newer indoorbev_jax's file)"
+    )
 
 
 def test_write_bag_clears_only_its_own_leftovers(tmp_path):

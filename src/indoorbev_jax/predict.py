@@ -45,6 +45,7 @@ from indoorbev_jax.models import IndoorBEV
 from indoorbev_jax.mount import LEVEL, LidarMount, check_level_frame
 
 MODEL_FORMAT = "indoorbev_jax-model-v1"
+MODEL_FIELDS = ("format", "config", "params", "sha256")  # sha256: absent in older files
 
 # The model reads intensity as the simulator makes it: reflectivity x cos(incidence), in
 # [0, 1]. Drivers report other units; each factor maps one onto that (then clipped to [0, 1]).
@@ -138,6 +139,13 @@ def load_model(path: str | os.PathLike, *, check: bool = True) -> tuple[Config, 
         raise ValueError(f"{path}: not an indoorbev_jax model file ({e})") from None
     if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:
         raise ValueError(f"{path}: not an indoorbev_jax model file (format {MODEL_FORMAT})")
+    # A flipped byte in the key "sha256" made a checked file read as an older, unchecked one.
+    unknown = sorted(map(str, payload.keys() - MODEL_FIELDS))
+    if unknown:
+        raise ValueError(
+            f"{path}: unexpected field(s) {', '.join(map(repr, unknown))}, expected only "
+            f"{', '.join(MODEL_FIELDS)} (a damaged copy, or a newer indoorbev_jax's file)"
+        )
     text, params = payload.get("config"), payload.get("params")
     if not isinstance(text, str) or not isinstance(params, dict):
         raise ValueError(
