@@ -316,7 +316,10 @@ def main(argv=None) -> None:
                   f"{inference.mask_threshold}:\n{text}")  # fmt: skip
         payload = {"setup": setup, "sweep": [entry for _, _, entry in sweep]}
     if args.json:
-        write_json(args.json, payload)
+        try:  # a disk that filled up during the evaluation: the metrics are printed above
+            write_json(args.json, payload)
+        except OSError as e:
+            sys.exit(f"eval_sim.py: error: {e} (the metrics are printed above)")
         print(f"metrics written to {args.json}")
 
 

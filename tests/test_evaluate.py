@@ -96,6 +96,24 @@ def test_json_never_replaces_a_file_of_either_dataset(tmp_path, capsys):
     assert main([*argv, str(tmp_path / "gt" / "metrics.json")]) == 0  # beside them is fine
 
 
+def test_a_json_that_cannot_be_written_is_one_line_after_the_metrics(tmp_path, capsys, full_disk):
+    """A disk that filled up during the evaluation gave a traceback; now one line names the
+    file and the cause, and the metrics are still printed."""
+    kitti.write_labels(tmp_path / "gt/label_2/a.txt", _labels([[-2.0, -2.0]]), NAMES)
+    kitti.write_labels(tmp_path / "pred/label_2/a.txt", _labels([[-2.0, -2.0]], [0.9]), NAMES)
+    out = tmp_path / "m.json"
+    argv = ["eval", "--gt", str(tmp_path / "gt"), "--pred", str(tmp_path / "pred"), "--preset",
+            "tiny", "--json", str(out)]  # fmt: skip
+    with full_disk():
+        assert main(argv) == 1
+    printed = capsys.readouterr()
+    assert printed.err == (
+        f"indoorbev eval: error: [Errno 28] cannot write {out}: No space left on device "
+        "(the metrics are printed above)\n"
+    )
+    assert "ground truth" in printed.out and "Misc" in printed.out and not out.exists()
+
+
 def test_an_empty_ground_truth_folder_is_named(tmp_path, capsys):
     """Without --split the frames are <gt>/label_2's files: the messages name that folder."""
     (tmp_path / "gt/label_2").mkdir(parents=True)

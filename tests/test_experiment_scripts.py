@@ -987,6 +987,13 @@ def test_distributed_runs_join_before_training_and_name_a_failed_join(monkeypatc
     assert "--coordinator-address, --num-processes: only with --distributed" in (
         capsys.readouterr().err
     )
+    # A sweep's state is not sharded: across hosts its first checkpoint failed, steps lost.
+    with pytest.raises(SystemExit) as stop:
+        sweep.main(["--workdir", "w", "--learning-rates", "1e-3", "--distributed", *hosts])
+    assert stop.value.code == 2 and not calls
+    assert "--distributed: a sweep trains its K models in one process on one device" in (
+        capsys.readouterr().err
+    )
 
 
 def test_eval_sim_scores_the_split_and_seed_it_is_given(tmp_path, monkeypatch, capsys):

@@ -269,7 +269,11 @@ def eval_command(args: argparse.Namespace) -> int:
         print(note)
     print(text)
     if args.json is not None:
-        write_json(args.json, payload)
+        try:  # a disk that filled up during the evaluation: the metrics are printed above
+            write_json(args.json, payload)
+        except OSError as e:
+            print(f"indoorbev eval: error: {e} (the metrics are printed above)", file=sys.stderr)
+            return 1
         print(f"metrics written to {args.json}")
     return 0
 

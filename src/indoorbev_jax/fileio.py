@@ -138,10 +138,11 @@ def hold_folder(folder: str | os.PathLike, job: str, place: str, take: bool = Tr
         return
     with lock:
         if take and _take_lock(lock, folder, job, place):
-            lock.seek(0)
-            lock.truncate()
-            lock.write(f"{job}, pid {os.getpid()}\n")
-            lock.flush()
+            try:  # unbuffered: a line that failed is not tried again, unnamed, on close
+                os.ftruncate(lock.fileno(), 0)
+                os.write(lock.fileno(), f"{job}, pid {os.getpid()}\n".encode())
+            except OSError as e:  # a full disk: named, as atomic_write names its files
+                raise OSError(e.errno, f"cannot write {folder / '.lock'}: {e.strerror}") from e
         yield
 
 

@@ -279,6 +279,27 @@ def test_a_corrupt_mask_png_is_named(tmp_path):
         kitti.read_mask(tmp_path / "ihdr.png", shape)
 
 
+def test_a_lock_that_cannot_be_written_is_named_once(tmp_path, monkeypatch):
+    """On a full disk every long job said only "[Errno 28] No space left on device": the
+    line written into the folder's lock was the one write not named."""
+    real_write = os.write
+
+    def full(fd, data):
+        if data.startswith(b"export, pid"):
+            raise OSError(28, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(os, "write", full)
+    with pytest.raises(OSError) as failed:
+        with fileio.hold_folder(tmp_path / "out", "export", "--out"):
+            pass
+    lock = tmp_path / "out" / ".lock"
+    assert str(failed.value) == f"[Errno 28] cannot write {lock}: No space left on device"
+    monkeypatch.setattr(os, "write", real_write)
+    with fileio.hold_folder(tmp_path / "out", "export", "--out"):  # the rerun takes it
+        assert lock.read_text() == f"export, pid {os.getpid()}\n"
+
+
 def test_a_failed_write_names_the_file_and_leaves_nothing(tmp_path):
     """A full disk under ndarray.tofile said only "6464 requested and 1024 written"."""
 
