@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_distributed_arguments(p)
     args = p.parse_args(argv)
-    if False:  # its state is unsharded: orbax refused the first checkpoint, steps lost
+    if args.distributed:  # its state is unsharded: orbax refused the first checkpoint, steps lost
         p.error("--distributed: a sweep trains its K models in one process on one device; "
                 "run it on one host (train.py runs on several)")  # fmt: skip
     try:
