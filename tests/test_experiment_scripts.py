@@ -996,7 +996,7 @@ def test_distributed_runs_join_before_training_and_name_a_failed_join(monkeypatc
     )
 
 
-def test_eval_sim_scores_the_split_and_seed_it_is_given(tmp_path, monkeypatch, capsys):
+def test_eval_sim_scores_the_split_and_seed_it_is_given(tmp_path, monkeypatch, capsys, full_disk):
     """``--split val`` must simulate the val scenes under ``VAL_SEED`` and the JSON must
     record the seed used. A mutation audit: the split not passed on to the simulator, the
     two default seeds swapped and ``setup.seed`` the default seed all passed."""
@@ -1026,6 +1026,15 @@ def test_eval_sim_scores_the_split_and_seed_it_is_given(tmp_path, monkeypatch, c
         setup = json.loads((tmp_path / "r.json").read_text())["setup"]
         assert (setup["split"], setup["seed"]) == expected, flags
     capsys.readouterr()
+    # A disk that filled up during the evaluation: one line after the metrics, no traceback.
+    with full_disk(), pytest.raises(SystemExit) as stop:
+        eval_sim.main([*argv, "--json", str(tmp_path / "full.json")])
+    assert stop.value.code == (
+        f"eval_sim.py: error: [Errno 28] cannot write {tmp_path / 'full.json'}: No space left "
+        "on device (the metrics are printed above)"
+    )
+    printed = capsys.readouterr().out
+    assert "mask threshold" in printed and "metrics written" not in printed
     # evaluate_sim_sweep simulates the split it is given.
     simulated = []
 
